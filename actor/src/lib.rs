@@ -1,0 +1,14 @@
+//! The actor: the rapier3d feeding world (`shared/feeding.md`), the controllers that act in
+//! it, episode rollouts into trajectory records, and the `pbrl env` commands.
+
+pub mod config;
+pub mod kinematics;
+pub mod scene;
+pub mod world;
+
+pub use config::{Profile, WorldConfig};
+pub use world::{FeedingWorld, Step, WorldError, ACT_DIM, OBS_DIM};
+pub mod controller;
+pub mod rollout;
+pub mod cli;
+pub mod render;
