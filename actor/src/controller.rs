@@ -6,7 +6,7 @@ use nalgebra::{Point3, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::kinematics::{dls_velocity, NJ};
+use crate::kinematics::{dls_velocity_within_limits, posture_pull, NJ};
 use crate::world::{FeedingWorld, WorldError, ACT_DIM};
 
 /// Which controller to run.
@@ -67,7 +67,9 @@ impl Scripted {
         let level = world.start_spoon()?.rotation;
         let w = (level * frames.spoon.rotation.inverse()).scaled_axis() * 2.0;
         let twist = Vector6::new(v.x, v.y, v.z, w.x, w.y, w.z);
-        let dq = dls_velocity(&frames.spoon_jacobian(), &twist, 0.02);
+        let (q, q0) = (world.joints()?, world.start_joints()?);
+        let pull = posture_pull(&q, &q0, 0.5, 0.1);
+        let dq = dls_velocity_within_limits(&frames.spoon_jacobian(), &twist, 0.02, &pull, &q, 0.02);
         // A fast joint covers 1 - (1 - gain)^substeps of its target offset per env step.
         let per_step = 1.0 - (1.0 - cfg.motor_gain as f64).powi(cfg.substeps as i32);
         let to_action = cfg.control_dt() as f64 / (cfg.action_scale as f64 * per_step);

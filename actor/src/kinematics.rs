@@ -169,7 +169,7 @@ impl Arm {
         pos_tol: f64,
         rot_tol: f64,
     ) -> ([f64; NJ], bool) {
-        const ITERS: usize = 150;
+        const ITERS: usize = 200;
         const DAMPING: f64 = 0.05;
         let mut q = *q0;
         for _ in 0..ITERS {
@@ -178,10 +178,11 @@ impl Arm {
             if pos_err < pos_tol * 0.1 && rot_err < rot_tol * 0.1 {
                 break;
             }
-            let j = f.ee_jacobian();
-            let jj = j * j.transpose() + Matrix6::identity() * (DAMPING * DAMPING);
-            let Some(inv) = jj.try_inverse() else { break };
-            let dq = j.transpose() * (inv * e);
+            // NOTE: the null-space pull towards the rest pose keeps solutions away from the
+            // joint limits, where a feeder could not move on.
+            let pull = posture_pull(&q, q0, 0.1, 0.2);
+            let dq = dls_velocity(&f.ee_jacobian(), &e, DAMPING, &pull);
+            let dq = nalgebra::SVector::<f64, NJ>::from(dq);
             // Cap the step so the linearisation holds.
             let scale = (0.3 / dq.amax()).min(1.0);
             for i in 0..NJ {
@@ -207,14 +208,60 @@ pub fn pose_error(target: &Isometry3<f64>, current: &Isometry3<f64>) -> (Vector6
     (e, dp.norm(), qdiff)
 }
 
-/// Joint velocities that give the 6D twist `twist` (linear, angular) by damped least squares.
-pub fn dls_velocity(j: &Jacobian, twist: &Vector6<f64>, damping: f64) -> [f64; NJ] {
+/// Joint velocities that give the 6D twist `twist` (linear, angular) by damped least
+/// squares, plus `secondary` projected into the Jacobian's null space (a motion that does
+/// not disturb the twist, such as drifting back towards a comfortable posture).
+pub fn dls_velocity(j: &Jacobian, twist: &Vector6<f64>, damping: f64, secondary: &[f64; NJ]) -> [f64; NJ] {
     let jj = j * j.transpose() + Matrix6::identity() * (damping * damping);
-    let dq = match jj.try_inverse() {
-        Some(inv) => j.transpose() * (inv * twist),
-        None => return [0.0; NJ],
+    let Some(inv) = jj.try_inverse() else {
+        return [0.0; NJ];
     };
+    let pinv = j.transpose() * inv;
+    let z = nalgebra::SVector::<f64, NJ>::from_column_slice(secondary);
+    let dq = pinv * twist + (z - pinv * (j * z));
     std::array::from_fn(|i| dq[i])
+}
+
+/// Like [`dls_velocity`], but a joint at (or within `margin` of) a limit that the motion
+/// would push further in is locked and the rest re-solved, so the twist is not lost on a
+/// joint that cannot move.
+pub fn dls_velocity_within_limits(
+    j: &Jacobian,
+    twist: &Vector6<f64>,
+    damping: f64,
+    secondary: &[f64; NJ],
+    q: &[f64; NJ],
+    margin: f64,
+) -> [f64; NJ] {
+    let mut j = *j;
+    let mut secondary = *secondary;
+    let mut locked = [false; NJ];
+    loop {
+        let dq = dls_velocity(&j, twist, damping, &secondary);
+        let mut changed = false;
+        for i in 0..NJ {
+            let [lo, hi] = JOINT_LIMITS[i];
+            let blocked = (q[i] - lo < margin && dq[i] < 0.0) || (hi - q[i] < margin && dq[i] > 0.0);
+            if blocked && !locked[i] {
+                locked[i] = true;
+                changed = true;
+                j.column_mut(i).fill(0.0);
+                secondary[i] = 0.0;
+            }
+        }
+        if !changed {
+            return std::array::from_fn(|i| if locked[i] { 0.0 } else { dq[i] });
+        }
+    }
+}
+
+/// A pull towards `rest` plus a push away from any limit closer than `margin`.
+pub fn posture_pull(q: &[f64; NJ], rest: &[f64; NJ], gain: f64, margin: f64) -> [f64; NJ] {
+    std::array::from_fn(|i| {
+        let [lo, hi] = JOINT_LIMITS[i];
+        let push = (margin - (q[i] - lo)).max(0.0) - (margin - (hi - q[i])).max(0.0);
+        gain * (rest[i] - q[i]) + 5.0 * gain * push
+    })
 }
 
 /// A random rest pose: the neutral pose plus U(-spread, spread) per joint, within limits.

@@ -119,6 +119,7 @@ struct Episode {
     q_target: [f64; NJ],
     frames: ArmFrames,
     start_spoon: Isometry3<f64>,
+    start_q: [f64; NJ],
     head: Head,
     phys: PhysicsWorld,
     links: [RigidBodyHandle; NJ],
@@ -314,16 +315,19 @@ impl FeedingWorld {
             };
             for attempt in 0..cfg.ik_tries {
                 let rest = if attempt == 0 { NEUTRAL } else { random_rest(&mut rng, 0.8) };
-                let (q, ok) = self.arm.ik(&base, &start_ee, &rest, pos_tol, rot_tol);
+                // NOTE: solve for the mouth first and then for the start pose from there, so
+                // that the start posture lies on the same IK branch as the mouth and a
+                // smooth reach connects the two.
+                let (q_mouth, reach) = self.arm.ik(&base, &mouth_ee, &rest, pos_tol, rot_tol);
+                if !reach {
+                    continue;
+                }
+                let (q, ok) = self.arm.ik(&base, &start_ee, &q_mouth, pos_tol, rot_tol);
                 if !ok {
                     continue;
                 }
                 let frames = self.arm.frames(&base, &q);
-                if self.arm_touches(&frames, &obstacles) {
-                    continue;
-                }
-                let (_, reach) = self.arm.ik(&base, &mouth_ee, &q, pos_tol, rot_tol);
-                if reach {
+                if !self.arm_touches(&frames, &obstacles) {
                     found = Some((base, q, frames));
                     break 'bases;
                 }
@@ -434,6 +438,7 @@ impl FeedingWorld {
             q_target: q,
             frames,
             start_spoon,
+            start_q: q,
             head: Head {
                 rest: head_rest,
                 angles: head_rest,
@@ -754,6 +759,11 @@ impl FeedingWorld {
     /// Joint angles.
     pub fn joints(&self) -> Result<[f64; NJ], WorldError> {
         Ok(self.ep()?.q)
+    }
+
+    /// Joint angles at the start of the episode.
+    pub fn start_joints(&self) -> Result<[f64; NJ], WorldError> {
+        Ok(self.ep()?.start_q)
     }
 
     /// Frames of the arm now.
