@@ -4,7 +4,11 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
-#[command(name = "pbrl", version, about = "Preference-based RL for personalised robot feeding")]
+#[command(
+    name = "pbrl",
+    version,
+    about = "Preference-based RL for personalised robot feeding"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -2,14 +2,24 @@ use pbrl_actor::controller::{Controller, ControllerKind};
 use pbrl_actor::*;
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let kind = if args[1] == "random" { ControllerKind::Random } else { ControllerKind::Scripted };
+    let kind = if args[1] == "random" {
+        ControllerKind::Random
+    } else {
+        ControllerKind::Scripted
+    };
     let seed: u64 = args[2].parse().unwrap();
     let mut cfg = WorldConfig::default();
-    if args.len() > 3 { cfg.base = config::BasePlacement::Nominal; }
+    if args.len() > 3 {
+        cfg.base = config::BasePlacement::Nominal;
+    }
     let mut w = FeedingWorld::new(cfg).unwrap();
     let mut c = Controller::new(kind, seed);
     w.reset(seed).unwrap();
-    println!("base {:?} q {:?}", w.base().unwrap().translation.vector, w.joints().unwrap());
+    println!(
+        "base {:?} q {:?}",
+        w.base().unwrap().translation.vector,
+        w.joints().unwrap()
+    );
     for t in 0..200 {
         let a = c.act(&w).unwrap();
         let s = w.step(&a).unwrap();

@@ -109,9 +109,24 @@ pub enum EnvCommand {
 /// Run one `env` command.
 pub fn run(cmd: EnvCommand) -> Result<()> {
     match cmd {
-        EnvCommand::Demo { world, controller, episodes, seed } => demo(&world, controller, episodes, seed),
-        EnvCommand::Bench { world, steps, controller, seed } => bench(&world, steps, controller, seed),
-        EnvCommand::Record { world, controller, seed, out } => {
+        EnvCommand::Demo {
+            world,
+            controller,
+            episodes,
+            seed,
+        } => demo(&world, controller, episodes, seed),
+        EnvCommand::Bench {
+            world,
+            steps,
+            controller,
+            seed,
+        } => bench(&world, steps, controller, seed),
+        EnvCommand::Record {
+            world,
+            controller,
+            seed,
+            out,
+        } => {
             let mut w = FeedingWorld::new(world.config()?)?;
             let mut c = Controller::new(controller, seed);
             let t = run_episode(&mut w, &mut c, seed)?;
@@ -129,12 +144,20 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
             );
             Ok(())
         }
-        EnvCommand::Render { world, controller, seed, from, out } => {
+        EnvCommand::Render {
+            world,
+            controller,
+            seed,
+            from,
+            out,
+        } => {
             let cfg = world.config()?;
             let t = match from {
                 Some(path) => {
-                    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-                    pbrl_common::Trajectory::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?
+                    let bytes = std::fs::read(&path)
+                        .with_context(|| format!("reading {}", path.display()))?;
+                    pbrl_common::Trajectory::decode(&bytes)
+                        .with_context(|| format!("decoding {}", path.display()))?
                 }
                 None => {
                     let mut w = FeedingWorld::new(cfg.clone())?;
@@ -152,8 +175,12 @@ fn demo(args: &WorldArgs, kind: ControllerKind, episodes: u64, seed: u64) -> Res
     let cfg = args.config()?;
     let mut world = FeedingWorld::new(cfg)?;
     let mut controller = Controller::new(kind, seed);
-    let (mut successes, mut ret, mut ret_h, mut eaten, mut spilled) = (0u64, 0.0f64, 0.0f64, 0u64, 0u64);
-    println!("{:>6} {:>6} {:>7} {:>5} {:>9} {:>10} {:>10}", "seed", "eaten", "spilled", "hits", "success", "return", "pref_ret");
+    let (mut successes, mut ret, mut ret_h, mut eaten, mut spilled) =
+        (0u64, 0.0f64, 0.0f64, 0u64, 0u64);
+    println!(
+        "{:>6} {:>6} {:>7} {:>5} {:>9} {:>10} {:>10}",
+        "seed", "eaten", "spilled", "hits", "success", "return", "pref_ret"
+    );
     for s in seed..seed + episodes {
         let t = run_episode(&mut world, &mut controller, s)?;
         let o = &t.outcome;
@@ -206,9 +233,22 @@ fn bench(args: &WorldArgs, steps: u64, kind: ControllerKind, seed: u64) -> Resul
     let total = start.elapsed().as_secs_f64();
     let stepping = total - reset_time;
     println!("env steps:            {done} ({resets} resets, controller {kind:?}, one thread)");
-    println!("env steps per second: {:.0} (resets included)", done as f64 / total);
-    println!("per env step:         {:.1} us without resets", 1e6 * stepping / done as f64);
-    println!("per physics substep:  {:.1} us (arm, contacts and rapier)", 1e6 * stepping / (done as f64 * substeps));
-    println!("per reset:            {:.2} ms (IK, scene, {} settling substeps)", 1e3 * reset_time / resets as f64, world.config().settle_substeps);
+    println!(
+        "env steps per second: {:.0} (resets included)",
+        done as f64 / total
+    );
+    println!(
+        "per env step:         {:.1} us without resets",
+        1e6 * stepping / done as f64
+    );
+    println!(
+        "per physics substep:  {:.1} us (arm, contacts and rapier)",
+        1e6 * stepping / (done as f64 * substeps)
+    );
+    println!(
+        "per reset:            {:.2} ms (IK, scene, {} settling substeps)",
+        1e3 * reset_time / resets as f64,
+        world.config().settle_substeps
+    );
     Ok(())
 }

@@ -158,6 +158,8 @@ pub struct WorldConfig {
     pub episode_steps: u32,
     /// Substeps the food settles on the spoon at reset, before the first observation.
     pub settle_substeps: u32,
+    /// Iterations (internal substeps) of rapier's contact solver per physics substep.
+    pub solver_iterations: u32,
     /// Gravity (m/s^2, along -z) on the food.
     pub gravity: f32,
 
@@ -257,6 +259,7 @@ impl Default for WorldConfig {
             substeps: 5,
             episode_steps: 200,
             settle_substeps: 25,
+            solver_iterations: 2,
             gravity: 9.81,
             base: BasePlacement::Random,
             base_nominal: [-0.85, -0.2, 0.925],
@@ -267,7 +270,11 @@ impl Default for WorldConfig {
             ik_tries: 8,
             start_ee: [-0.15, -0.65, 1.15],
             start_ee_noise: 0.05,
-            start_ee_rpy: [std::f32::consts::FRAC_PI_2, 0.0, std::f32::consts::FRAC_PI_2],
+            start_ee_rpy: [
+                std::f32::consts::FRAC_PI_2,
+                0.0,
+                std::f32::consts::FRAC_PI_2,
+            ],
             ik_pos_tol: 0.03,
             ik_rot_tol: 0.03,
             action_scale: 0.25,
@@ -284,9 +291,9 @@ impl Default for WorldConfig {
             eat_distance: 0.03,
             spill_distance: 0.10,
             success_fraction: 0.75,
-            spoon_bowl_half: [0.0179, 0.029, 0.002],
+            spoon_bowl_half: [0.0179, 0.029, 0.006],
             spoon_rim_height: [0.011, 0.008, 0.014],
-            spoon_rim_thickness: 0.002,
+            spoon_rim_thickness: 0.004,
             spoon_handle_length: 0.11,
             head_angle_deg: 30.0,
             head_limit_deg: [50.0, 34.0, 70.0],
@@ -355,14 +362,22 @@ impl WorldConfig {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err(ConfigError::invalid(field, v, "must be a finite number > 0"))
+                Err(ConfigError::invalid(
+                    field,
+                    v,
+                    "must be a finite number > 0",
+                ))
             }
         }
         fn non_negative(field: &str, v: f32) -> Result<(), ConfigError> {
             if v.is_finite() && v >= 0.0 {
                 Ok(())
             } else {
-                Err(ConfigError::invalid(field, v, "must be a finite number >= 0"))
+                Err(ConfigError::invalid(
+                    field,
+                    v,
+                    "must be a finite number >= 0",
+                ))
             }
         }
         fn finite(field: &str, vs: &[f32]) -> Result<(), ConfigError> {
@@ -376,16 +391,34 @@ impl WorldConfig {
             if r[0] <= r[1] {
                 Ok(())
             } else {
-                Err(ConfigError::invalid(field, format!("{r:?}"), "must be [low, high] with low <= high"))
+                Err(ConfigError::invalid(
+                    field,
+                    format!("{r:?}"),
+                    "must be [low, high] with low <= high",
+                ))
             }
         }
         if self.food_count == 0 {
-            return Err(ConfigError::invalid("food_count", 0, "the world needs at least one food particle"));
+            return Err(ConfigError::invalid(
+                "food_count",
+                0,
+                "the world needs at least one food particle",
+            ));
         }
         if self.food_count > 64 {
-            return Err(ConfigError::invalid("food_count", self.food_count, "at most 64 particles fit on the spoon"));
+            return Err(ConfigError::invalid(
+                "food_count",
+                self.food_count,
+                "at most 64 particles fit on the spoon",
+            ));
         }
-        for (field, v) in [("substeps", self.substeps), ("episode_steps", self.episode_steps), ("base_tries", self.base_tries), ("ik_tries", self.ik_tries)] {
+        for (field, v) in [
+            ("substeps", self.substeps),
+            ("solver_iterations", self.solver_iterations),
+            ("episode_steps", self.episode_steps),
+            ("base_tries", self.base_tries),
+            ("ik_tries", self.ik_tries),
+        ] {
             if v == 0 {
                 return Err(ConfigError::invalid(field, v, "must be at least 1"));
             }
@@ -398,7 +431,11 @@ impl WorldConfig {
         positive("eat_distance", self.eat_distance)?;
         positive("spill_distance", self.spill_distance)?;
         if !(self.success_fraction > 0.0 && self.success_fraction <= 1.0) {
-            return Err(ConfigError::invalid("success_fraction", self.success_fraction, "must be in (0, 1]"));
+            return Err(ConfigError::invalid(
+                "success_fraction",
+                self.success_fraction,
+                "must be in (0, 1]",
+            ));
         }
         positive("action_scale", self.action_scale)?;
         positive("motor_gain", self.motor_gain)?;
@@ -420,7 +457,11 @@ impl WorldConfig {
         positive("spoon_rim_thickness", self.spoon_rim_thickness)?;
         positive("spoon_handle_length", self.spoon_handle_length)?;
         if 2.0 * self.food_radius > 2.0 * self.spoon_bowl_half[0] {
-            return Err(ConfigError::invalid("food_radius", self.food_radius, "food wider than the spoon bowl"));
+            return Err(ConfigError::invalid(
+                "food_radius",
+                self.food_radius,
+                "food wider than the spoon bowl",
+            ));
         }
         non_negative("start_ee_noise", self.start_ee_noise)?;
         non_negative("bowl_noise", self.bowl_noise)?;
@@ -431,7 +472,11 @@ impl WorldConfig {
             non_negative(&format!("head_limit_deg[{i}]"), v)?;
         }
         if !(self.limits_scale_min > 0.0 && self.limits_scale_min <= 1.0) {
-            return Err(ConfigError::invalid("limits_scale_min", self.limits_scale_min, "must be in (0, 1]"));
+            return Err(ConfigError::invalid(
+                "limits_scale_min",
+                self.limits_scale_min,
+                "must be in (0, 1]",
+            ));
         }
         range("base_x_range", self.base_x_range)?;
         range("base_y_range", self.base_y_range)?;
@@ -447,7 +492,10 @@ impl WorldConfig {
         }
         let w = self.profile.weights.as_array();
         finite("profile.weights", &w)?;
-        non_negative("profile.high_force_threshold", self.profile.high_force_threshold)?;
+        non_negative(
+            "profile.high_force_threshold",
+            self.profile.high_force_threshold,
+        )?;
         Ok(())
     }
 }

@@ -59,7 +59,11 @@ impl Scripted {
         if !self.near_mouth && (spoon - waypoint).norm() < 0.015 {
             self.near_mouth = true;
         }
-        let target = if self.near_mouth { mouth + forward * self.stop } else { waypoint };
+        let target = if self.near_mouth {
+            mouth + forward * self.stop
+        } else {
+            waypoint
+        };
         let mut v = (target - spoon) * self.gain;
         if v.norm() > self.max_speed {
             v *= self.max_speed / v.norm();
@@ -69,7 +73,8 @@ impl Scripted {
         let twist = Vector6::new(v.x, v.y, v.z, w.x, w.y, w.z);
         let (q, q0) = (world.joints()?, world.start_joints()?);
         let pull = posture_pull(&q, &q0, 0.5, 0.1);
-        let dq = dls_velocity_within_limits(&frames.spoon_jacobian(), &twist, 0.02, &pull, &q, 0.02);
+        let dq =
+            dls_velocity_within_limits(&frames.spoon_jacobian(), &twist, 0.02, &pull, &q, 0.02);
         // A fast joint covers 1 - (1 - gain)^substeps of its target offset per env step.
         let per_step = 1.0 - (1.0 - cfg.motor_gain as f64).powi(cfg.substeps as i32);
         let to_action = cfg.control_dt() as f64 / (cfg.action_scale as f64 * per_step);

@@ -4,8 +4,7 @@
 //! about its local z axis. Computed in f64; the physics takes f32 poses from it.
 
 use nalgebra::{
-    Isometry3, Matrix6, OMatrix, Point3, Translation3, UnitQuaternion, Vector3,
-    Vector6, U7,
+    Isometry3, Matrix6, OMatrix, Point3, Translation3, UnitQuaternion, Vector3, Vector6, U7,
 };
 use rand::Rng;
 
@@ -211,7 +210,12 @@ pub fn pose_error(target: &Isometry3<f64>, current: &Isometry3<f64>) -> (Vector6
 /// Joint velocities that give the 6D twist `twist` (linear, angular) by damped least
 /// squares, plus `secondary` projected into the Jacobian's null space (a motion that does
 /// not disturb the twist, such as drifting back towards a comfortable posture).
-pub fn dls_velocity(j: &Jacobian, twist: &Vector6<f64>, damping: f64, secondary: &[f64; NJ]) -> [f64; NJ] {
+pub fn dls_velocity(
+    j: &Jacobian,
+    twist: &Vector6<f64>,
+    damping: f64,
+    secondary: &[f64; NJ],
+) -> [f64; NJ] {
     let jj = j * j.transpose() + Matrix6::identity() * (damping * damping);
     let Some(inv) = jj.try_inverse() else {
         return [0.0; NJ];
@@ -241,7 +245,8 @@ pub fn dls_velocity_within_limits(
         let mut changed = false;
         for i in 0..NJ {
             let [lo, hi] = JOINT_LIMITS[i];
-            let blocked = (q[i] - lo < margin && dq[i] < 0.0) || (hi - q[i] < margin && dq[i] > 0.0);
+            let blocked =
+                (q[i] - lo < margin && dq[i] < 0.0) || (hi - q[i] < margin && dq[i] > 0.0);
             if blocked && !locked[i] {
                 locked[i] = true;
                 changed = true;
@@ -312,7 +317,10 @@ mod tests {
         let f = arm.frames(&base, &q);
         let s = f.spoon.translation.vector;
         // feeding.md: the spoon origin then sits near (-0.163, -0.55, 1.13).
-        assert!((s - Vector3::new(-0.1627, -0.55, 1.13)).norm() < 0.03, "{s:?}");
+        assert!(
+            (s - Vector3::new(-0.1627, -0.55, 1.13)).norm() < 0.03,
+            "{s:?}"
+        );
         for (i, qi) in q.iter().enumerate() {
             assert!(*qi >= JOINT_LIMITS[i][0] && *qi <= JOINT_LIMITS[i][1]);
         }

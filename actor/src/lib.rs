@@ -8,7 +8,7 @@ pub mod world;
 
 pub use config::{Profile, WorldConfig};
 pub use world::{FeedingWorld, Step, WorldError, ACT_DIM, OBS_DIM};
-pub mod controller;
-pub mod rollout;
 pub mod cli;
+pub mod controller;
 pub mod render;
+pub mod rollout;

@@ -16,7 +16,9 @@ fn pose7(iso: &Isometry3<f64>) -> [f32; 7] {
 fn snapshot(world: &FeedingWorld, replay: &mut Replay) -> Result<(), WorldError> {
     replay.spoon.push(pose7(&world.frames()?.spoon));
     replay.head.push(pose7(&world.head()?));
-    replay.mouth.push(world.mouth()?.coords.map(|x| x as f32).into());
+    replay
+        .mouth
+        .push(world.mouth()?.coords.map(|x| x as f32).into());
     replay.joints.push(world.joints()?.map(|x| x as f32));
     for p in world.food_positions()? {
         replay.food.push(p.coords.map(|x| x as f32).into());
@@ -51,7 +53,10 @@ pub fn run_episode(
         obs: Vec::with_capacity((steps + 1) * OBS_DIM),
         actions: Vec::with_capacity(steps * ACT_DIM),
         rewards: Vec::with_capacity(steps),
-        outcome: Outcome { food: n_food, ..Outcome::default() },
+        outcome: Outcome {
+            food: n_food,
+            ..Outcome::default()
+        },
         replay: None,
     };
     t.obs.extend_from_slice(&obs);

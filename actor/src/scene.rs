@@ -29,7 +29,9 @@ impl Shape {
     /// A bounding sphere: (centre, radius).
     pub fn bounding_sphere(&self) -> (Point3<f64>, f64) {
         match *self {
-            Shape::Capsule { a, b, radius } => (nalgebra::center(&a, &b), (b - a).norm() / 2.0 + radius),
+            Shape::Capsule { a, b, radius } => {
+                (nalgebra::center(&a, &b), (b - a).norm() / 2.0 + radius)
+            }
             Shape::Ball { centre, radius } => (centre, radius),
             Shape::Cuboid { centre, half } => (centre, half.norm()),
         }
@@ -84,9 +86,17 @@ pub fn person(large: bool) -> Person {
     // The mouth target at zero head angles and in the head frame (feeding.md); the head
     // frame's origin follows from the two.
     let (mouth_world, mouth_local, head_radius) = if large {
-        (Vector3::new(0.0, -0.08, 1.2085), Vector3::new(0.0, -0.11, 0.03), 0.08)
+        (
+            Vector3::new(0.0, -0.08, 1.2085),
+            Vector3::new(0.0, -0.11, 0.03),
+            0.08,
+        )
     } else {
-        (Vector3::new(0.0, -0.07, 1.142), Vector3::new(0.0, -0.10, 0.03), 0.075)
+        (
+            Vector3::new(0.0, -0.07, 1.142),
+            Vector3::new(0.0, -0.10, 0.03),
+            0.075,
+        )
     };
     let head_origin = mouth_world - mouth_local;
     // Upper body drops with the chest (0.89 vs 0.86).
@@ -94,13 +104,43 @@ pub fn person(large: bool) -> Person {
     let chin = head_origin.z + 0.03 - head_radius;
     let mut parts = vec![
         capsule("torso", [0.0, 0.06, 0.62], [0.0, 0.06, 0.92 + dz], 0.14),
-        capsule("neck", [0.0, 0.04, 0.98 + dz], [0.0, 0.03, chin + 0.02], 0.05),
-        capsule("left upper arm", [0.2, 0.06, 1.0 + dz], [0.2, 0.06, 0.76 + dz], 0.045),
-        capsule("right upper arm", [-0.2, 0.06, 1.0 + dz], [-0.2, 0.06, 0.76 + dz], 0.045),
-        capsule("left forearm", [0.2, 0.06, 0.76 + dz], [0.2, -0.22, 0.76 + dz], 0.04),
-        capsule("right forearm", [-0.2, 0.06, 0.76 + dz], [-0.2, -0.22, 0.76 + dz], 0.04),
+        capsule(
+            "neck",
+            [0.0, 0.04, 0.98 + dz],
+            [0.0, 0.03, chin + 0.02],
+            0.05,
+        ),
+        capsule(
+            "left upper arm",
+            [0.2, 0.06, 1.0 + dz],
+            [0.2, 0.06, 0.76 + dz],
+            0.045,
+        ),
+        capsule(
+            "right upper arm",
+            [-0.2, 0.06, 1.0 + dz],
+            [-0.2, 0.06, 0.76 + dz],
+            0.045,
+        ),
+        capsule(
+            "left forearm",
+            [0.2, 0.06, 0.76 + dz],
+            [0.2, -0.22, 0.76 + dz],
+            0.04,
+        ),
+        capsule(
+            "right forearm",
+            [-0.2, 0.06, 0.76 + dz],
+            [-0.2, -0.22, 0.76 + dz],
+            0.04,
+        ),
         capsule("left thigh", [0.1, 0.05, 0.52], [0.1, -0.38, 0.52], 0.075),
-        capsule("right thigh", [-0.1, 0.05, 0.52], [-0.1, -0.38, 0.52], 0.075),
+        capsule(
+            "right thigh",
+            [-0.1, 0.05, 0.52],
+            [-0.1, -0.38, 0.52],
+            0.075,
+        ),
         capsule("left shin", [0.1, -0.4, 0.5], [0.1, -0.45, 0.12], 0.055),
         capsule("right shin", [-0.1, -0.4, 0.5], [-0.1, -0.45, 0.12], 0.055),
     ];
@@ -117,7 +157,10 @@ pub fn person(large: bool) -> Person {
     parts.push(cuboid("backrest", [0.0, 0.26, 0.8], [0.25, 0.03, 0.35]));
     Person {
         large,
-        head_rest: Isometry3::from_parts(Translation3::from(head_origin), UnitQuaternion::identity()),
+        head_rest: Isometry3::from_parts(
+            Translation3::from(head_origin),
+            UnitQuaternion::identity(),
+        ),
         mouth_local,
         head_centre_local: Vector3::new(0.0, 0.0, 0.03),
         head_radius,
@@ -163,10 +206,22 @@ pub fn spoon_boxes(cfg: &WorldConfig) -> Vec<Shape> {
     };
     vec![
         b([0.0, -t / 2.0, 0.0], [hx + w, t / 2.0, hz + w]),
-        b([hx + w / 2.0, h_side / 2.0, 0.0], [w / 2.0, h_side / 2.0, hz + w]),
-        b([-(hx + w / 2.0), h_side / 2.0, 0.0], [w / 2.0, h_side / 2.0, hz + w]),
-        b([0.0, h_tip / 2.0, -(hz + w / 2.0)], [hx + w, h_tip / 2.0, w / 2.0]),
-        b([0.0, h_back / 2.0, hz + w / 2.0], [hx + w, h_back / 2.0, w / 2.0]),
+        b(
+            [hx + w / 2.0, h_side / 2.0, 0.0],
+            [w / 2.0, h_side / 2.0, hz + w],
+        ),
+        b(
+            [-(hx + w / 2.0), h_side / 2.0, 0.0],
+            [w / 2.0, h_side / 2.0, hz + w],
+        ),
+        b(
+            [0.0, h_tip / 2.0, -(hz + w / 2.0)],
+            [hx + w, h_tip / 2.0, w / 2.0],
+        ),
+        b(
+            [0.0, h_back / 2.0, hz + w / 2.0],
+            [hx + w, h_back / 2.0, w / 2.0],
+        ),
         b([0.0, 0.004, hz + w + len / 2.0], [0.006, 0.004, len / 2.0]),
     ]
 }
@@ -180,7 +235,11 @@ pub fn food_offsets(n: u32) -> Vec<Vector3<f64>> {
     (0..n)
         .map(|k| {
             let (i, j, layer) = (k % 2, (k / 2) % 2, k / 4);
-            Vector3::new(0.01 * i as f64 - 0.005, 0.01 * j as f64, 0.01 * layer as f64 + 0.01)
+            Vector3::new(
+                0.01 * i as f64 - 0.005,
+                0.01 * j as f64,
+                0.01 * layer as f64 + 0.01,
+            )
         })
         .collect()
 }

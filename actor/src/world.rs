@@ -31,6 +31,8 @@ pub const ACT_DIM: usize = NJ;
 
 const PERSON_TAG: u128 = 1;
 const FOOD: Group = Group::GROUP_1;
+/// The first arm link (w0 onwards) whose collider the food can touch.
+const FIRST_FOOD_LINK: usize = 4;
 
 /// What went wrong in the world; every message names the offending value.
 #[derive(Debug, thiserror::Error)]
@@ -137,6 +139,8 @@ pub struct FeedingWorld {
     arm: Arm,
     spoon_boxes: Vec<(Pose, SharedShape, (Point3<f64>, f64))>,
     ep: Option<Episode>,
+    /// Scratch space of the contact solver, kept to avoid allocating every substep.
+    rows: Vec<ContactRow>,
 }
 
 fn to_pose(iso: &Isometry3<f64>) -> Pose {
@@ -165,7 +169,11 @@ fn parry_shape(shape: &Shape) -> (Pose, SharedShape) {
         ),
         Shape::Cuboid { centre, half } => (
             Pose::from_translation(v(centre)),
-            SharedShape::new(Cuboid::new(Vector::new(half.x as f32, half.y as f32, half.z as f32))),
+            SharedShape::new(Cuboid::new(Vector::new(
+                half.x as f32,
+                half.y as f32,
+                half.z as f32,
+            ))),
         ),
     }
 }
@@ -205,6 +213,7 @@ impl FeedingWorld {
             arm: Arm::baxter(),
             spoon_boxes,
             ep: None,
+            rows: Vec::new(),
         })
     }
 
@@ -230,8 +239,12 @@ impl FeedingWorld {
             BodySize::Small => false,
         };
         let impairment = match cfg.profile.impairment {
-            Impairment::Random => [Impairment::None, Impairment::Limits, Impairment::Weakness, Impairment::Tremor]
-                [rng.random_range(0..4)],
+            Impairment::Random => [
+                Impairment::None,
+                Impairment::Limits,
+                Impairment::Weakness,
+                Impairment::Tremor,
+            ][rng.random_range(0..4)],
             other => other,
         };
         let limit_scale = if impairment == Impairment::Limits {
@@ -291,7 +304,11 @@ impl FeedingWorld {
         let head_centre = head_pose * Point3::from(person.head_centre_local);
         obstacles.push(Obstacle {
             owner: Owner::Person,
-            pose: Pose::from_translation(Vector::new(head_centre.x as f32, head_centre.y as f32, head_centre.z as f32)),
+            pose: Pose::from_translation(Vector::new(
+                head_centre.x as f32,
+                head_centre.y as f32,
+                head_centre.z as f32,
+            )),
             shape: SharedShape::new(Ball::new(person.head_radius as f32)),
             sphere: (head_centre, person.head_radius),
         });
@@ -303,8 +320,10 @@ impl FeedingWorld {
             let base = match cfg.base {
                 BasePlacement::Nominal => Isometry3::translation(bx, by, bz),
                 BasePlacement::Random => {
-                    let x = bx + rng.random_range(cfg.base_x_range[0] as f64..=cfg.base_x_range[1] as f64);
-                    let y = by + rng.random_range(cfg.base_y_range[0] as f64..=cfg.base_y_range[1] as f64);
+                    let x = bx
+                        + rng.random_range(cfg.base_x_range[0] as f64..=cfg.base_x_range[1] as f64);
+                    let y = by
+                        + rng.random_range(cfg.base_y_range[0] as f64..=cfg.base_y_range[1] as f64);
                     let [lo, hi] = cfg.base_yaw_deg_range.map(|d| (d as f64).to_radians());
                     let yaw = rng.random_range(lo..=hi);
                     Isometry3::from_parts(
@@ -314,7 +333,11 @@ impl FeedingWorld {
                 }
             };
             for attempt in 0..cfg.ik_tries {
-                let rest = if attempt == 0 { NEUTRAL } else { random_rest(&mut rng, 0.8) };
+                let rest = if attempt == 0 {
+                    NEUTRAL
+                } else {
+                    random_rest(&mut rng, 0.8)
+                };
                 // NOTE: solve for the mouth first and then for the start pose from there, so
                 // that the start posture lies on the same IK branch as the mouth and a
                 // smooth reach connects the two.
@@ -349,9 +372,14 @@ impl FeedingWorld {
         phys.gravity = Vector::new(0.0, 0.0, -cfg.gravity);
         phys.integration_parameters.dt = cfg.substep_dt;
         phys.integration_parameters.length_unit = 0.01;
+        phys.integration_parameters.num_solver_iterations = cfg.solver_iterations as usize;
         let only_food = InteractionGroups::new(Group::GROUP_2, FOOD, InteractionTestMode::And);
         for (part, obstacle) in parts.iter().zip(&obstacles) {
-            let tag = if part.owner == Owner::Person { PERSON_TAG } else { 0 };
+            let tag = if part.owner == Owner::Person {
+                PERSON_TAG
+            } else {
+                0
+            };
             phys.colliders.insert(
                 ColliderBuilder::new(obstacle.shape.clone())
                     .position(obstacle.pose)
@@ -360,7 +388,9 @@ impl FeedingWorld {
                     .user_data(tag),
             );
         }
-        let head_body = phys.bodies.insert(RigidBodyBuilder::kinematic_position_based().pose(to_pose(&head_pose)));
+        let head_body = phys
+            .bodies
+            .insert(RigidBodyBuilder::kinematic_position_based().pose(to_pose(&head_pose)));
         let hc = person.head_centre_local;
         phys.colliders.insert_with_parent(
             ColliderBuilder::ball(person.head_radius as f32)
@@ -370,28 +400,40 @@ impl FeedingWorld {
             head_body,
             &mut phys.bodies,
         );
+        // NOTE: only the wrist links, which pass near the spoon, carry colliders the food can
+        // touch; the upper arm is far from the food and skipping it saves a sixth of the
+        // physics time. Every link still meets the person and the table in the arm's own
+        // contact solver.
         let segments = frames.link_segments();
         let links: [RigidBodyHandle; NJ] = std::array::from_fn(|i| {
-            let body = phys
-                .bodies
-                .insert(RigidBodyBuilder::kinematic_position_based().pose(to_pose(&frames.joints[i])));
-            let (a, b, _) = segments[i];
-            let inv = frames.joints[i].inverse();
-            let (la, lb) = (inv * a, inv * b);
-            phys.colliders.insert_with_parent(
-                ColliderBuilder::capsule_from_endpoints(
-                    Vector::new(la.x as f32, la.y as f32, la.z as f32),
-                    Vector::new(lb.x as f32, lb.y as f32, lb.z as f32),
-                    scene::LINK_RADII[i] as f32,
-                )
-                .collision_groups(only_food),
-                body,
-                &mut phys.bodies,
+            let body = phys.bodies.insert(
+                RigidBodyBuilder::kinematic_position_based().pose(to_pose(&frames.joints[i])),
             );
+            if i >= FIRST_FOOD_LINK {
+                let (a, b, _) = segments[i];
+                let inv = frames.joints[i].inverse();
+                let (la, lb) = (inv * a, inv * b);
+                phys.colliders.insert_with_parent(
+                    ColliderBuilder::capsule_from_endpoints(
+                        Vector::new(la.x as f32, la.y as f32, la.z as f32),
+                        Vector::new(lb.x as f32, lb.y as f32, lb.z as f32),
+                        scene::LINK_RADII[i] as f32,
+                    )
+                    .collision_groups(only_food),
+                    body,
+                    &mut phys.bodies,
+                );
+            }
             body
         });
-        let spoon = phys.bodies.insert(RigidBodyBuilder::kinematic_position_based().pose(to_pose(&frames.spoon)));
-        let compound: Vec<(Pose, SharedShape)> = self.spoon_boxes.iter().map(|(p, s, _)| (*p, s.clone())).collect();
+        let spoon = phys
+            .bodies
+            .insert(RigidBodyBuilder::kinematic_position_based().pose(to_pose(&frames.spoon)));
+        let compound: Vec<(Pose, SharedShape)> = self
+            .spoon_boxes
+            .iter()
+            .map(|(p, s, _)| (*p, s.clone()))
+            .collect();
         phys.colliders.insert_with_parent(
             ColliderBuilder::compound(compound)
                 .friction(cfg.food_friction)
@@ -489,30 +531,51 @@ impl FeedingWorld {
     ) {
         let margin = prediction as f64 + 1e-3;
         let spoon_pose = to_pose(&frames.spoon);
+        let links = frames.link_segments().map(|(a, b, link)| {
+            let r = scene::LINK_RADII[link];
+            let sphere = (nalgebra::center(&a, &b), (b - a).norm() / 2.0 + r);
+            let to_v = |p: Point3<f64>| Vector::new(p.x as f32, p.y as f32, p.z as f32);
+            (Capsule::new(to_v(a), to_v(b), r as f32), sphere, link)
+        });
+        let spoon_spheres: Vec<(Point3<f64>, f64)> = self
+            .spoon_boxes
+            .iter()
+            .map(|(_, _, s)| (frames.spoon * s.0, s.1))
+            .collect();
         for (oi, o) in obstacles.iter().enumerate() {
-            for (a, b, link) in frames.link_segments() {
-                let r = scene::LINK_RADII[link];
-                let (c, rad) = (nalgebra::center(&a, &b), (b - a).norm() / 2.0 + r);
-                if (c - o.sphere.0).norm() > rad + o.sphere.1 + margin {
+            for (cap, sphere, link) in &links {
+                if (sphere.0 - o.sphere.0).norm() > sphere.1 + o.sphere.1 + margin {
                     continue;
                 }
-                let cap = Capsule::new(
-                    Vector::new(a.x as f32, a.y as f32, a.z as f32),
-                    Vector::new(b.x as f32, b.y as f32, b.z as f32),
-                    r as f32,
-                );
-                if let Ok(Some(ct)) = query::contact(&Pose::identity(), &cap, &o.pose, &*o.shape, prediction) {
-                    f(ArmContact { obstacle: oi, link, spoon: false, point: to_point(ct.point1), normal: -to_point(ct.normal1).coords, dist: ct.dist });
+                if let Ok(Some(ct)) =
+                    query::contact(&Pose::identity(), cap, &o.pose, &*o.shape, prediction)
+                {
+                    f(ArmContact {
+                        obstacle: oi,
+                        link: *link,
+                        spoon: false,
+                        point: to_point(ct.point1),
+                        normal: -to_point(ct.normal1).coords,
+                        dist: ct.dist,
+                    });
                 }
             }
-            for (local, shape, sphere) in &self.spoon_boxes {
-                let c = frames.spoon * sphere.0;
-                if (c - o.sphere.0).norm() > sphere.1 + o.sphere.1 + margin {
+            for ((local, shape, _), sphere) in self.spoon_boxes.iter().zip(&spoon_spheres) {
+                if (sphere.0 - o.sphere.0).norm() > sphere.1 + o.sphere.1 + margin {
                     continue;
                 }
                 let pose = spoon_pose * *local;
-                if let Ok(Some(ct)) = query::contact(&pose, &**shape, &o.pose, &*o.shape, prediction) {
-                    f(ArmContact { obstacle: oi, link: NJ - 1, spoon: true, point: to_point(ct.point1), normal: -to_point(ct.normal1).coords, dist: ct.dist });
+                if let Ok(Some(ct)) =
+                    query::contact(&pose, &**shape, &o.pose, &*o.shape, prediction)
+                {
+                    f(ArmContact {
+                        obstacle: oi,
+                        link: NJ - 1,
+                        spoon: true,
+                        point: to_point(ct.point1),
+                        normal: -to_point(ct.normal1).coords,
+                        dist: ct.dist,
+                    });
                 }
             }
         }
@@ -534,12 +597,17 @@ impl FeedingWorld {
         let head_pose = head_pose(&ep.person, &ep.head.angles);
         let hc = head_pose * Point3::from(ep.person.head_centre_local);
         let head_obstacle = &mut ep.obstacles[ep.head_obstacle];
-        head_obstacle.pose = Pose::from_translation(Vector::new(hc.x as f32, hc.y as f32, hc.z as f32));
+        head_obstacle.pose =
+            Pose::from_translation(Vector::new(hc.x as f32, hc.y as f32, hc.z as f32));
         head_obstacle.sphere.0 = hc;
 
         // Position motors with capped torque (PyBullet's position control: the motor asks
         // for the velocity gain * error / dt).
-        let (kp, cap, damping) = (cfg.motor_gain as f64, cfg.motor_max_force as f64, cfg.joint_damping as f64);
+        let (kp, cap, damping) = (
+            cfg.motor_gain as f64,
+            cfg.motor_max_force as f64,
+            cfg.joint_damping as f64,
+        );
         let inertia = cfg.joint_inertia.map(f64::from);
         for i in 0..NJ {
             let v_des = kp * (ep.q_target[i] - ep.q[i]) / dt;
@@ -548,47 +616,58 @@ impl FeedingWorld {
         }
 
         // Contacts: one non-penetration constraint per contact point along its normal.
-        let mut rows: Vec<(Vec<f64>, f64, f64, bool, bool)> = Vec::new();
+        let mut rows = std::mem::take(&mut self.rows);
+        rows.clear();
         let erp = cfg.contact_erp as f64;
         let slop = cfg.contact_slop as f64;
         let frames = ep.frames.clone();
         let obstacles = std::mem::take(&mut ep.obstacles);
         self.for_each_contact(&frames, &obstacles, 0.005, |c| {
             let j = frames.jacobian_at(&c.point, c.link);
-            let jc: Vec<f64> = (0..NJ).map(|i| (0..3).map(|k| c.normal[k] * j[(k, i)]).sum()).collect();
+            let jc: [f64; NJ] =
+                std::array::from_fn(|i| (0..3).map(|k| c.normal[k] * j[(k, i)]).sum());
             let m_inv: f64 = (0..NJ).map(|i| jc[i] * jc[i] / inertia[i]).sum();
             if m_inv < 1e-12 {
                 return;
             }
             let depth = -c.dist as f64;
             // Speculative below zero depth: the gap may close, no more.
-            let target = if depth > 0.0 { erp * (depth - slop).max(0.0) / dt } else { -(-depth) / dt };
+            let target = if depth > 0.0 {
+                erp * (depth - slop).max(0.0) / dt
+            } else {
+                -(-depth) / dt
+            };
             let person = obstacles[c.obstacle].owner == Owner::Person;
-            rows.push((jc, target, 1.0 / m_inv, person, c.spoon));
+            rows.push(ContactRow {
+                jc,
+                target,
+                m_eff: 1.0 / m_inv,
+                lambda: 0.0,
+                person,
+                spoon: c.spoon,
+            });
         });
         let ep = self.ep.as_mut().expect("substep runs inside an episode");
         ep.obstacles = obstacles;
-        let mut lambda = vec![0.0; rows.len()];
         for _ in 0..8 {
-            for (k, (jc, target, m_eff, _, _)) in rows.iter().enumerate() {
-                let vn: f64 = (0..NJ).map(|i| jc[i] * ep.qd[i]).sum();
-                let new = (lambda[k] + m_eff * (target - vn)).max(0.0);
-                let d = new - lambda[k];
-                lambda[k] = new;
+            for row in rows.iter_mut() {
+                let vn: f64 = (0..NJ).map(|i| row.jc[i] * ep.qd[i]).sum();
+                let new = (row.lambda + row.m_eff * (row.target - vn)).max(0.0);
+                let d = new - row.lambda;
+                row.lambda = new;
                 for i in 0..NJ {
-                    ep.qd[i] += d * jc[i] / inertia[i];
+                    ep.qd[i] += d * row.jc[i] / inertia[i];
                 }
             }
         }
         let (mut f_spoon, mut f_robot) = (0.0, 0.0);
-        for (k, (_, _, _, person, spoon)) in rows.iter().enumerate() {
-            if *person {
-                f_robot += lambda[k] / dt;
-                if *spoon {
-                    f_spoon += lambda[k] / dt;
-                }
+        for row in rows.iter().filter(|r| r.person) {
+            f_robot += row.lambda / dt;
+            if row.spoon {
+                f_spoon += row.lambda / dt;
             }
         }
+        self.rows = rows;
 
         // Integrate, never past the limits.
         for i in 0..NJ {
@@ -612,10 +691,19 @@ impl FeedingWorld {
         ep.phys.step();
 
         // Food touching the person.
-        for f in ep.food.iter_mut().filter(|f| !f.hit && f.state != FoodState::Eaten) {
+        for f in ep
+            .food
+            .iter_mut()
+            .filter(|f| !f.hit && f.state != FoodState::Eaten)
+        {
             for pair in ep.phys.narrow_phase.contact_pairs_with(f.collider) {
-                let other = if pair.collider1 == f.collider { pair.collider2 } else { pair.collider1 };
-                if pair.has_any_active_contact() && ep.phys.colliders[other].user_data == PERSON_TAG {
+                let other = if pair.collider1 == f.collider {
+                    pair.collider2
+                } else {
+                    pair.collider1
+                };
+                if pair.has_any_active_contact() && ep.phys.colliders[other].user_data == PERSON_TAG
+                {
                     f.hit = true;
                     ep.counts.hits_total += 1;
                 }
@@ -627,7 +715,10 @@ impl FeedingWorld {
     /// Advance one env step with `action` (7 numbers; clipped to [-1, 1]).
     pub fn step(&mut self, action: &[f32]) -> Result<Step, WorldError> {
         if action.len() != ACT_DIM {
-            return Err(WorldError::ActionLength { found: action.len(), expected: ACT_DIM });
+            return Err(WorldError::ActionLength {
+                found: action.len(),
+                expected: ACT_DIM,
+            });
         }
         if let Some((index, &value)) = action.iter().enumerate().find(|(_, a)| !a.is_finite()) {
             return Err(WorldError::ActionNotFinite { index, value });
@@ -692,14 +783,22 @@ impl FeedingWorld {
 
         // Rewards (feeding.md).
         let d = (to_point(spoon_pose.translation) - mouth).norm();
-        let a_norm = action.iter().map(|a| (*a as f64).powi(2)).sum::<f64>().sqrt();
+        let a_norm = action
+            .iter()
+            .map(|a| (*a as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
         let j = ep.frames.ee_jacobian();
         let ee_speed = (0..3)
             .map(|k| (0..NJ).map(|i| j[(k, i)] * ep.qd[i]).sum::<f64>().powi(2))
             .sum::<f64>()
             .sqrt();
         let robot = -d - 0.01 * a_norm + 20.0 * counts.eaten as f64 - 5.0 * counts.spilled as f64;
-        let high = if f_spoon >= cfg.profile.high_force_threshold as f64 { -f_spoon } else { 0.0 };
+        let high = if f_spoon >= cfg.profile.high_force_threshold as f64 {
+            -f_spoon
+        } else {
+            0.0
+        };
         let terms = [
             -d,
             counts.eaten as f64,
@@ -815,13 +914,31 @@ impl FeedingWorld {
     /// Centre of every food particle (eaten ones where they were eaten).
     pub fn food_positions(&self) -> Result<Vec<Point3<f64>>, WorldError> {
         let ep = self.ep()?;
-        Ok(ep.food.iter().map(|f| to_point(ep.phys.bodies[f.body].translation())).collect())
+        Ok(ep
+            .food
+            .iter()
+            .map(|f| to_point(ep.phys.bodies[f.body].translation()))
+            .collect())
     }
 
     /// Food counts of the episode so far.
     pub fn food_counts(&self) -> Result<FoodCounts, WorldError> {
         Ok(self.ep()?.counts)
     }
+}
+
+/// One non-penetration constraint of the arm's contact solver.
+struct ContactRow {
+    /// Normal velocity per unit joint velocity.
+    jc: [f64; NJ],
+    /// Normal velocity the constraint asks for (at least).
+    target: f64,
+    /// Effective mass along the normal.
+    m_eff: f64,
+    /// Accumulated impulse.
+    lambda: f64,
+    person: bool,
+    spoon: bool,
 }
 
 /// One contact of the arm or spoon with an obstacle.

@@ -199,7 +199,11 @@ impl Trajectory {
             check("replay.head", rp.head.len(), steps + 1)?;
             check("replay.mouth", rp.mouth.len(), steps + 1)?;
             check("replay.joints", rp.joints.len(), steps + 1)?;
-            check("replay.food", rp.food.len(), (steps + 1) * rp.n_food as usize)?;
+            check(
+                "replay.food",
+                rp.food.len(),
+                (steps + 1) * rp.n_food as usize,
+            )?;
         }
         Ok(())
     }
