@@ -197,7 +197,12 @@ pub struct WorldConfig {
     pub motor_max_force: f32,
     /// Joint damping (N m s/rad).
     pub joint_damping: f32,
-    /// Effective inertia of each joint (kg m^2), fitted to the original's response.
+    /// Mass of the spoon (kg), carried at the end of the arm.
+    pub spoon_mass: f32,
+    /// Rotational inertia of the spoon about its origin (kg m^2, isotropic).
+    pub spoon_inertia: f32,
+    /// Effective inertia of each joint (kg m^2) without the spoon, fitted so that the
+    /// joints respond to actions as the original's do.
     pub joint_inertia: [f32; 7],
     /// Fraction of a penetration removed per substep by the contact solver.
     pub contact_erp: f32,
@@ -281,7 +286,9 @@ impl Default for WorldConfig {
             motor_gain: 0.025,
             motor_max_force: 1.0,
             joint_damping: 0.7,
-            joint_inertia: [1.2, 1.2, 1.2, 1.2, 0.02, 0.02, 0.02],
+            spoon_mass: 1.0,
+            spoon_inertia: 0.0025,
+            joint_inertia: [1.1, 0.6, 0.3, 1.0, 0.005, 0.005, 0.02],
             contact_erp: 0.2,
             contact_slop: 0.001,
             food_count: 8,
@@ -441,6 +448,8 @@ impl WorldConfig {
         positive("motor_gain", self.motor_gain)?;
         positive("motor_max_force", self.motor_max_force)?;
         non_negative("joint_damping", self.joint_damping)?;
+        non_negative("spoon_mass", self.spoon_mass)?;
+        non_negative("spoon_inertia", self.spoon_inertia)?;
         for (i, &m) in self.joint_inertia.iter().enumerate() {
             positive(&format!("joint_inertia[{i}]"), m)?;
         }

@@ -28,8 +28,10 @@ pub struct Scripted {
     pub approach: f64,
     /// Distance in front of the mouth where the spoon stops (m; negative goes past it).
     pub stop: f64,
-    /// Top speed of the spoon (m/s).
+    /// Top speed of the spoon on the way to the first waypoint (m/s).
     pub max_speed: f64,
+    /// Top speed of the spoon from the waypoint in to the mouth (m/s).
+    pub final_speed: f64,
     /// Proportional gain from position error to spoon velocity (1/s).
     pub gain: f64,
     near_mouth: bool,
@@ -39,8 +41,9 @@ impl Default for Scripted {
     fn default() -> Self {
         Self {
             approach: 0.06,
-            stop: 0.0,
+            stop: 0.02,
             max_speed: 0.08,
+            final_speed: 0.05,
             gain: 1.5,
             near_mouth: false,
         }
@@ -48,6 +51,16 @@ impl Default for Scripted {
 }
 
 impl Scripted {
+    /// A feeder that stops `stop` metres in front of the mouth (negative: pushes past it
+    /// into the face), coming in from the waypoint at up to `final_speed` m/s.
+    pub fn reaching(stop: f64, final_speed: f64) -> Self {
+        Self {
+            stop,
+            final_speed,
+            ..Self::default()
+        }
+    }
+
     /// The action for the world's current state.
     pub fn act(&mut self, world: &FeedingWorld) -> Result<[f32; ACT_DIM], WorldError> {
         let cfg = world.config();
@@ -64,9 +77,14 @@ impl Scripted {
         } else {
             waypoint
         };
+        let top = if self.near_mouth {
+            self.final_speed
+        } else {
+            self.max_speed
+        };
         let mut v = (target - spoon) * self.gain;
-        if v.norm() > self.max_speed {
-            v *= self.max_speed / v.norm();
+        if v.norm() > top {
+            v *= top / v.norm();
         }
         let level = world.start_spoon()?.rotation;
         let w = (level * frames.spoon.rotation.inverse()).scaled_axis() * 2.0;

@@ -83,6 +83,7 @@ pub fn run_episode(
             break;
         }
     }
+    replay.food_outcome = world.food_outcomes()?;
     t.replay = Some(replay);
     Ok(t)
 }

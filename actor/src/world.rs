@@ -31,6 +31,11 @@ pub const ACT_DIM: usize = NJ;
 
 const PERSON_TAG: u128 = 1;
 const FOOD: Group = Group::GROUP_1;
+
+type Matrix7 = nalgebra::SMatrix<f64, NJ, NJ>;
+type Vector7 = nalgebra::SVector<f64, NJ>;
+/// Projected Gauss-Seidel passes of the arm's motor and contact solver.
+const SOLVER_ITERATIONS: usize = 10;
 /// The first arm link (w0 onwards) whose collider the food can touch.
 const FIRST_FOOD_LINK: usize = 4;
 
@@ -75,17 +80,20 @@ pub struct Step {
     pub food: FoodCounts,
     /// Enough food eaten so far for the episode to count as a success.
     pub success: bool,
-    /// Total normal force of the spoon on the person (N), mean over the step's substeps.
+    /// Total normal force of the spoon on the person (N), the largest over the step's
+    /// substeps (observation entry 24, C_hf).
     pub spoon_force: f32,
-    /// Total normal force of arm and spoon on the person (N).
+    /// Total normal force of arm and spoon on the person (N), the largest over the step's
+    /// substeps (C_f).
     pub robot_force: f32,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 enum FoodState {
-    OnSpoon,
-    Eaten,
-    Spilled,
+    OnSpoon = 0,
+    Eaten = 1,
+    Spilled = 2,
 }
 
 struct Food {
@@ -601,19 +609,31 @@ impl FeedingWorld {
             Pose::from_translation(Vector::new(hc.x as f32, hc.y as f32, hc.z as f32));
         head_obstacle.sphere.0 = hc;
 
-        // Position motors with capped torque (PyBullet's position control: the motor asks
-        // for the velocity gain * error / dt).
+        // The arm's joint-space mass matrix: the fitted joint inertias plus the spoon (a
+        // 1 kg body at the end of the chain, which couples the joints).
         let (kp, cap, damping) = (
             cfg.motor_gain as f64,
             cfg.motor_max_force as f64,
             cfg.joint_damping as f64,
         );
-        let inertia = cfg.joint_inertia.map(f64::from);
-        for i in 0..NJ {
-            let v_des = kp * (ep.q_target[i] - ep.q[i]) / dt;
-            let tau = (inertia[i] * (v_des - ep.qd[i]) / dt + damping * ep.qd[i]).clamp(-cap, cap);
-            ep.qd[i] += dt * (tau - damping * ep.qd[i]) / inertia[i];
-        }
+        let js = ep.frames.spoon_jacobian();
+        let (jv, jw) = (js.fixed_rows::<3>(0), js.fixed_rows::<3>(3));
+        let mut mass = Matrix7::from_diagonal(&Vector7::from(cfg.joint_inertia.map(f64::from)));
+        mass += (jv.transpose() * jv) * cfg.spoon_mass as f64
+            + (jw.transpose() * jw) * cfg.spoon_inertia as f64;
+        // Joint damping, implicit so that light joints stay stable: (M + c dt) qd' = M qd.
+        let damped = mass + Matrix7::identity() * (damping * dt);
+        let (Some(m_inv), Some(d_inv)) = (mass.cholesky(), damped.cholesky()) else {
+            unreachable!("a diagonal of positive inertias plus Gram matrices is positive definite");
+        };
+        let m_inv = m_inv.inverse();
+        let mut qd = d_inv.solve(&(mass * Vector7::from(ep.qd)));
+
+        // Position motors as PyBullet makes them: a velocity constraint asking for
+        // gain * error / dt, its impulse capped by the force limit, solved together with
+        // the contacts below (so a blocked joint pushes with its whole force limit).
+        let v_motor: [f64; NJ] = std::array::from_fn(|i| kp * (ep.q_target[i] - ep.q[i]) / dt);
+        let mut motor_impulse = [0.0f64; NJ];
 
         // Contacts: one non-penetration constraint per contact point along its normal.
         let mut rows = std::mem::take(&mut self.rows);
@@ -624,10 +644,10 @@ impl FeedingWorld {
         let obstacles = std::mem::take(&mut ep.obstacles);
         self.for_each_contact(&frames, &obstacles, 0.005, |c| {
             let j = frames.jacobian_at(&c.point, c.link);
-            let jc: [f64; NJ] =
-                std::array::from_fn(|i| (0..3).map(|k| c.normal[k] * j[(k, i)]).sum());
-            let m_inv: f64 = (0..NJ).map(|i| jc[i] * jc[i] / inertia[i]).sum();
-            if m_inv < 1e-12 {
+            let jc = Vector7::from_fn(|i, _| (0..3).map(|k| c.normal[k] * j[(k, i)]).sum());
+            let w = m_inv * jc;
+            let m_inv_n = jc.dot(&w);
+            if m_inv_n < 1e-12 {
                 return;
             }
             let depth = -c.dist as f64;
@@ -640,8 +660,9 @@ impl FeedingWorld {
             let person = obstacles[c.obstacle].owner == Owner::Person;
             rows.push(ContactRow {
                 jc,
+                w,
                 target,
-                m_eff: 1.0 / m_inv,
+                m_eff: 1.0 / m_inv_n,
                 lambda: 0.0,
                 person,
                 spoon: c.spoon,
@@ -649,17 +670,22 @@ impl FeedingWorld {
         });
         let ep = self.ep.as_mut().expect("substep runs inside an episode");
         ep.obstacles = obstacles;
-        for _ in 0..8 {
+        for _ in 0..SOLVER_ITERATIONS {
+            for i in 0..NJ {
+                let m_eff = 1.0 / m_inv[(i, i)];
+                let new =
+                    (motor_impulse[i] + m_eff * (v_motor[i] - qd[i])).clamp(-cap * dt, cap * dt);
+                qd += m_inv.column(i) * (new - motor_impulse[i]);
+                motor_impulse[i] = new;
+            }
             for row in rows.iter_mut() {
-                let vn: f64 = (0..NJ).map(|i| row.jc[i] * ep.qd[i]).sum();
+                let vn = row.jc.dot(&qd);
                 let new = (row.lambda + row.m_eff * (row.target - vn)).max(0.0);
-                let d = new - row.lambda;
+                qd += row.w * (new - row.lambda);
                 row.lambda = new;
-                for i in 0..NJ {
-                    ep.qd[i] += d * row.jc[i] / inertia[i];
-                }
             }
         }
+        ep.qd = qd.into();
         let (mut f_spoon, mut f_robot) = (0.0, 0.0);
         for row in rows.iter().filter(|r| r.person) {
             f_robot += row.lambda / dt;
@@ -738,9 +764,11 @@ impl FeedingWorld {
         let (mut f_spoon, mut f_robot) = (0.0, 0.0);
         let n = self.cfg.substeps;
         for _ in 0..n {
+            // NOTE: the original reads contact forces once per step, at its last substep; we
+            // keep the largest over the step's substeps so that a short hit is never missed.
             let (s, r) = self.substep();
-            f_spoon += s / n as f64;
-            f_robot += r / n as f64;
+            f_spoon = f_spoon.max(s);
+            f_robot = f_robot.max(r);
         }
 
         // Food: eaten near the mouth, spilled far from the spoon.
@@ -921,6 +949,11 @@ impl FeedingWorld {
             .collect())
     }
 
+    /// What became of each food particle: 0 still on the spoon, 1 eaten, 2 spilled.
+    pub fn food_outcomes(&self) -> Result<Vec<u8>, WorldError> {
+        Ok(self.ep()?.food.iter().map(|f| f.state as u8).collect())
+    }
+
     /// Food counts of the episode so far.
     pub fn food_counts(&self) -> Result<FoodCounts, WorldError> {
         Ok(self.ep()?.counts)
@@ -930,7 +963,9 @@ impl FeedingWorld {
 /// One non-penetration constraint of the arm's contact solver.
 struct ContactRow {
     /// Normal velocity per unit joint velocity.
-    jc: [f64; NJ],
+    jc: Vector7,
+    /// Joint velocity change per unit impulse (M^-1 jc).
+    w: Vector7,
     /// Normal velocity the constraint asks for (at least).
     target: f64,
     /// Effective mass along the normal.

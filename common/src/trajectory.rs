@@ -79,6 +79,8 @@ pub struct Replay {
     pub food: Vec<[f32; 3]>,
     /// Number of food particles (the row length of `food`).
     pub n_food: u32,
+    /// What became of each particle at the end: 0 on the spoon, 1 eaten, 2 spilled.
+    pub food_outcome: Vec<u8>,
 }
 
 /// One whole episode.
@@ -203,6 +205,11 @@ impl Trajectory {
                 "replay.food",
                 rp.food.len(),
                 (steps + 1) * rp.n_food as usize,
+            )?;
+            check(
+                "replay.food_outcome",
+                rp.food_outcome.len(),
+                rp.n_food as usize,
             )?;
         }
         Ok(())
