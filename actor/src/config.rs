@@ -338,11 +338,15 @@ impl ConfigError {
 impl WorldConfig {
     /// The world used by tests: nominal base, larger body, no impairment.
     pub fn fixed() -> Self {
-        let mut cfg = Self::default();
-        cfg.base = BasePlacement::Nominal;
-        cfg.profile.body = BodySize::Large;
-        cfg.profile.impairment = Impairment::None;
-        cfg
+        Self {
+            base: BasePlacement::Nominal,
+            profile: Profile {
+                body: BodySize::Large,
+                impairment: Impairment::None,
+                ..Profile::paper()
+            },
+            ..Self::default()
+        }
     }
 
     /// Read a config from JSON; fields left out keep their defaults.
@@ -521,11 +525,15 @@ mod tests {
 
     #[test]
     fn bad_values_name_the_field() {
-        let mut c = WorldConfig::default();
-        c.food_count = 0;
+        let c = WorldConfig {
+            food_count: 0,
+            ..WorldConfig::default()
+        };
         assert_eq!(c.validate().unwrap_err().field, "food_count");
-        let mut c = WorldConfig::default();
-        c.food_radius = -0.01;
+        let c = WorldConfig {
+            food_radius: -0.01,
+            ..WorldConfig::default()
+        };
         let e = c.validate().unwrap_err();
         assert_eq!(e.field, "food_radius");
         assert!(e.to_string().contains("-0.01"), "{e}");

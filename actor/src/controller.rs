@@ -109,7 +109,7 @@ impl Scripted {
 #[derive(Clone, Debug)]
 pub enum Controller {
     Scripted(Scripted),
-    Random(ChaCha8Rng),
+    Random(Box<ChaCha8Rng>),
     Zero,
 }
 
@@ -118,7 +118,9 @@ impl Controller {
     pub fn new(kind: ControllerKind, seed: u64) -> Self {
         match kind {
             ControllerKind::Scripted => Self::Scripted(Scripted::default()),
-            ControllerKind::Random => Self::Random(ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ac71)),
+            ControllerKind::Random => {
+                Self::Random(Box::new(ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ac71)))
+            }
             ControllerKind::Zero => Self::Zero,
         }
     }

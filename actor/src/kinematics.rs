@@ -15,6 +15,8 @@ pub const NJ: usize = 7;
 pub const JOINT_NAMES: [&str; NJ] = ["s0", "s1", "e0", "e1", "w0", "w1", "w2"];
 
 /// Joint limits (rad), from the URDF (rounded as in `feeding.md`).
+// NOTE: -1.5708 is the URDF's number, not a rounded pi/2.
+#[allow(clippy::approx_constant)]
 pub const JOINT_LIMITS: [[f64; 2]; NJ] = [
     [-1.7017, 1.7017],
     [-2.147, 1.047],
@@ -129,8 +131,11 @@ impl Arm {
         let rows = nalgebra::Matrix3::new(0.0, 0.0998, -0.995, 0.0, 0.995, 0.0998, 1.0, 0.0, 0.0);
         let rot = UnitQuaternion::from_matrix(&rows);
         let spoon = Isometry3::from_parts(Translation3::new(0.1, -0.02, -0.0127), rot);
+        // NOTE: the mount's -0.7854 is the URDF's number, not a rounded pi/4.
+        #[allow(clippy::approx_constant)]
+        let mount = origin([0.024645, -0.219645, 0.118588], [0.0, 0.0, -0.7854]);
         Self {
-            mount: origin([0.024645, -0.219645, 0.118588], [0.0, 0.0, -0.7854]),
+            mount,
             joints,
             tool,
             spoon,

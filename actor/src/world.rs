@@ -696,15 +696,14 @@ impl FeedingWorld {
         self.rows = rows;
 
         // Integrate, never past the limits.
-        for i in 0..NJ {
-            ep.q[i] += dt * ep.qd[i];
-            let [lo, hi] = JOINT_LIMITS[i];
-            if ep.q[i] <= lo {
-                ep.q[i] = lo;
-                ep.qd[i] = ep.qd[i].max(0.0);
-            } else if ep.q[i] >= hi {
-                ep.q[i] = hi;
-                ep.qd[i] = ep.qd[i].min(0.0);
+        for ((q, qd), [lo, hi]) in ep.q.iter_mut().zip(&mut ep.qd).zip(JOINT_LIMITS) {
+            *q += dt * *qd;
+            if *q <= lo {
+                *q = lo;
+                *qd = qd.max(0.0);
+            } else if *q >= hi {
+                *q = hi;
+                *qd = qd.min(0.0);
             }
         }
         ep.frames = self.arm.frames(&ep.base, &ep.q);
