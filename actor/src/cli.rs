@@ -128,7 +128,7 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
             out,
         } => {
             let mut w = FeedingWorld::new(world.config()?)?;
-            let mut c = Controller::new(controller, seed);
+            let mut c = Controller::new(controller);
             let t = run_episode(&mut w, &mut c, seed)?;
             let bytes = t.encode();
             std::fs::write(&out, &bytes).with_context(|| format!("writing {}", out.display()))?;
@@ -161,7 +161,7 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
                 }
                 None => {
                     let mut w = FeedingWorld::new(cfg.clone())?;
-                    run_episode(&mut w, &mut Controller::new(controller, seed), seed)?
+                    run_episode(&mut w, &mut Controller::new(controller), seed)?
                 }
             };
             crate::render::render(&t, &cfg, &format!("{controller:?}").to_lowercase(), &out)?;
@@ -174,14 +174,17 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
 fn demo(args: &WorldArgs, kind: ControllerKind, episodes: u64, seed: u64) -> Result<()> {
     let cfg = args.config()?;
     let mut world = FeedingWorld::new(cfg)?;
-    let mut controller = Controller::new(kind, seed);
+    let mut controller = Controller::new(kind);
+    let end = seed
+        .checked_add(episodes)
+        .with_context(|| format!("--seed {seed} plus --episodes {episodes} overflows"))?;
     let (mut successes, mut ret, mut ret_h, mut eaten, mut spilled) =
         (0u64, 0.0f64, 0.0f64, 0u64, 0u64);
     println!(
         "{:>6} {:>6} {:>7} {:>5} {:>9} {:>10} {:>10}",
         "seed", "eaten", "spilled", "hits", "success", "return", "pref_ret"
     );
-    for s in seed..seed + episodes {
+    for s in seed..end {
         let t = run_episode(&mut world, &mut controller, s)?;
         let o = &t.outcome;
         println!(
@@ -210,7 +213,7 @@ fn bench(args: &WorldArgs, steps: u64, kind: ControllerKind, seed: u64) -> Resul
     let cfg = args.config()?;
     let substeps = cfg.substeps as f64;
     let mut world = FeedingWorld::new(cfg)?;
-    let mut controller = Controller::new(kind, seed);
+    let mut controller = Controller::new(kind);
     let (mut done, mut resets, mut reset_time) = (0u64, 0u64, 0.0f64);
     let mut episode_seed = seed;
     let start = Instant::now();
@@ -219,8 +222,8 @@ fn bench(args: &WorldArgs, steps: u64, kind: ControllerKind, seed: u64) -> Resul
         world.reset(episode_seed)?;
         reset_time += t0.elapsed().as_secs_f64();
         resets += 1;
-        episode_seed += 1;
-        controller.reset();
+        controller.reset(episode_seed);
+        episode_seed = episode_seed.wrapping_add(1);
         loop {
             let a: [f32; ACT_DIM] = controller.act(&world)?;
             let s = world.step(&a)?;

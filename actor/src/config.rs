@@ -423,16 +423,27 @@ impl WorldConfig {
                 "at most 64 particles fit on the spoon",
             ));
         }
-        for (field, v) in [
-            ("substeps", self.substeps),
-            ("solver_iterations", self.solver_iterations),
-            ("episode_steps", self.episode_steps),
-            ("base_tries", self.base_tries),
-            ("ik_tries", self.ik_tries),
+        for (field, v, max) in [
+            ("substeps", self.substeps, 1_000),
+            ("solver_iterations", self.solver_iterations, 100),
+            ("episode_steps", self.episode_steps, 100_000),
+            ("base_tries", self.base_tries, 10_000),
+            ("ik_tries", self.ik_tries, 1_000),
         ] {
-            if v == 0 {
-                return Err(ConfigError::invalid(field, v, "must be at least 1"));
+            if v == 0 || v > max {
+                return Err(ConfigError::invalid(
+                    field,
+                    v,
+                    &format!("must be in 1..={max}"),
+                ));
             }
+        }
+        if self.settle_substeps > 100_000 {
+            return Err(ConfigError::invalid(
+                "settle_substeps",
+                self.settle_substeps,
+                "must be at most 100000",
+            ));
         }
         positive("substep_dt", self.substep_dt)?;
         positive("food_radius", self.food_radius)?;
@@ -452,10 +463,29 @@ impl WorldConfig {
         positive("motor_gain", self.motor_gain)?;
         positive("motor_max_force", self.motor_max_force)?;
         non_negative("joint_damping", self.joint_damping)?;
-        non_negative("spoon_mass", self.spoon_mass)?;
-        non_negative("spoon_inertia", self.spoon_inertia)?;
+        // NOTE: bounded so that the arm's mass matrix is always well conditioned.
         for (i, &m) in self.joint_inertia.iter().enumerate() {
-            positive(&format!("joint_inertia[{i}]"), m)?;
+            if !(1e-4..=1e3).contains(&m) {
+                return Err(ConfigError::invalid(
+                    &format!("joint_inertia[{i}]"),
+                    m,
+                    "must be in [1e-4, 1e3] kg m^2",
+                ));
+            }
+        }
+        if !(0.0..=100.0).contains(&self.spoon_mass) {
+            return Err(ConfigError::invalid(
+                "spoon_mass",
+                self.spoon_mass,
+                "must be in [0, 100] kg",
+            ));
+        }
+        if !(0.0..=10.0).contains(&self.spoon_inertia) {
+            return Err(ConfigError::invalid(
+                "spoon_inertia",
+                self.spoon_inertia,
+                "must be in [0, 10] kg m^2",
+            ));
         }
         non_negative("contact_erp", self.contact_erp)?;
         non_negative("contact_slop", self.contact_slop)?;

@@ -109,26 +109,35 @@ impl Scripted {
 #[derive(Clone, Debug)]
 pub enum Controller {
     Scripted(Scripted),
+    /// Its random stream restarts from each episode's seed, so an episode's actions depend
+    /// on its seed alone.
     Random(Box<ChaCha8Rng>),
     Zero,
 }
 
+/// Mixed into the episode seed for the random controller's stream, so that it differs from
+/// the world's own stream of the same seed.
+const RANDOM_SALT: u64 = 0x5eed_ac71_0c0f_fee5;
+
 impl Controller {
-    /// A fresh controller; `seed` drives the random one.
-    pub fn new(kind: ControllerKind, seed: u64) -> Self {
+    /// A fresh controller.
+    pub fn new(kind: ControllerKind) -> Self {
         match kind {
             ControllerKind::Scripted => Self::Scripted(Scripted::default()),
             ControllerKind::Random => {
-                Self::Random(Box::new(ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ac71)))
+                Self::Random(Box::new(ChaCha8Rng::seed_from_u64(RANDOM_SALT)))
             }
             ControllerKind::Zero => Self::Zero,
         }
     }
 
-    /// Forget per-episode state (the scripted feeder's phase).
-    pub fn reset(&mut self) {
-        if let Self::Scripted(s) = self {
-            s.near_mouth = false;
+    /// Start an episode of seed `episode_seed`: forget the scripted feeder's phase, restart
+    /// the random stream.
+    pub fn reset(&mut self, episode_seed: u64) {
+        match self {
+            Self::Scripted(s) => s.near_mouth = false,
+            Self::Random(rng) => **rng = ChaCha8Rng::seed_from_u64(episode_seed ^ RANDOM_SALT),
+            Self::Zero => {}
         }
     }
 

@@ -33,7 +33,7 @@ pub fn run_episode(
     seed: u64,
 ) -> Result<Trajectory, WorldError> {
     let obs = world.reset(seed)?;
-    controller.reset();
+    controller.reset(seed);
     let steps = world.config().episode_steps as usize;
     let n_food = world.config().food_count;
     let mut replay = Replay {

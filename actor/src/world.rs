@@ -100,7 +100,10 @@ struct Food {
     body: RigidBodyHandle,
     collider: ColliderHandle,
     state: FoodState,
+    /// Counted as a hit on the person (once per particle).
     hit: bool,
+    /// Touched the person during the current env step.
+    touched: bool,
 }
 
 /// A static or moving obstacle for the arm's contact solver.
@@ -113,6 +116,8 @@ struct Obstacle {
 
 struct Head {
     rest: [f64; 3],
+    /// Joint limits of the head (rad), after any impairment.
+    limits: [f64; 3],
     angles: [f64; 3],
     tremor: [f64; 3],
     sign: f64,
@@ -239,6 +244,8 @@ impl FeedingWorld {
 
     /// Start a new episode from `seed` and return its first observation.
     pub fn reset(&mut self, seed: u64) -> Result<[f32; OBS_DIM], WorldError> {
+        // NOTE: a failed reset must not leave the previous episode steppable.
+        self.ep = None;
         let cfg = &self.cfg;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let large = match cfg.profile.body {
@@ -260,8 +267,10 @@ impl FeedingWorld {
         } else {
             1.0
         };
+        let head_limits: [f64; 3] =
+            std::array::from_fn(|k| (cfg.head_limit_deg[k] as f64 * limit_scale).to_radians());
         let head_rest: [f64; 3] = std::array::from_fn(|k| {
-            let lim = (cfg.head_limit_deg[k] as f64 * limit_scale).to_radians();
+            let lim = head_limits[k];
             uniform(&mut rng, (cfg.head_angle_deg as f64).to_radians()).clamp(-lim, lim)
         });
         let tremor: [f64; 3] = std::array::from_fn(|_| {
@@ -363,15 +372,18 @@ impl FeedingWorld {
                     break 'bases;
                 }
             }
-            if cfg.base == BasePlacement::Nominal && cfg.base_tries > 1 {
+            if cfg.base == BasePlacement::Nominal {
                 // The nominal base does not change; the rest poses above were its tries.
-                continue;
+                break;
             }
         }
         let Some((base, q, frames)) = found else {
             return Err(WorldError::ResetFailed {
                 seed,
-                tries: cfg.base_tries * cfg.ik_tries,
+                tries: match cfg.base {
+                    BasePlacement::Nominal => cfg.ik_tries,
+                    BasePlacement::Random => cfg.base_tries.saturating_mul(cfg.ik_tries),
+                },
             });
         };
 
@@ -473,6 +485,7 @@ impl FeedingWorld {
                     collider,
                     state: FoodState::OnSpoon,
                     hit: false,
+                    touched: false,
                 }
             })
             .collect();
@@ -491,6 +504,7 @@ impl FeedingWorld {
             start_q: q,
             head: Head {
                 rest: head_rest,
+                limits: head_limits,
                 angles: head_rest,
                 tremor,
                 sign: 1.0,
@@ -512,7 +526,7 @@ impl FeedingWorld {
         }
         let ep = self.ep.as_mut().expect("episode was set just above");
         for f in &mut ep.food {
-            f.hit = false;
+            f.touched = false;
         }
         Ok(self.observation(0.0))
     }
@@ -599,7 +613,8 @@ impl FeedingWorld {
         // The head follows its (tremor) target through a weak position motor.
         let gain = cfg.head_motor_gain as f64;
         for k in 0..3 {
-            let target = ep.head.rest[k] + ep.head.sign * ep.head.tremor[k];
+            let lim = ep.head.limits[k];
+            let target = (ep.head.rest[k] + ep.head.sign * ep.head.tremor[k]).clamp(-lim, lim);
             ep.head.angles[k] += gain * (target - ep.head.angles[k]);
         }
         let head_pose = head_pose(&ep.person, &ep.head.angles);
@@ -623,6 +638,8 @@ impl FeedingWorld {
             + (jw.transpose() * jw) * cfg.spoon_inertia as f64;
         // Joint damping, implicit so that light joints stay stable: (M + c dt) qd' = M qd.
         let damped = mass + Matrix7::identity() * (damping * dt);
+        // NOTE: cannot fail: the config bounds the inertias to [1e-4, 1e3] and the spoon's
+        // terms are Gram matrices, so both matrices are symmetric positive definite.
         let (Some(m_inv), Some(d_inv)) = (mass.cholesky(), damped.cholesky()) else {
             unreachable!("a diagonal of positive inertias plus Gram matrices is positive definite");
         };
@@ -715,24 +732,25 @@ impl FeedingWorld {
         bodies[ep.head.body].set_next_kinematic_position(to_pose(&head_pose));
         ep.phys.step();
 
-        // Food touching the person.
+        // Food touching the person; counted as hits once per env step, after eating.
         for f in ep
             .food
             .iter_mut()
-            .filter(|f| !f.hit && f.state != FoodState::Eaten)
+            .filter(|f| !f.hit && !f.touched && f.state != FoodState::Eaten)
         {
-            for pair in ep.phys.narrow_phase.contact_pairs_with(f.collider) {
-                let other = if pair.collider1 == f.collider {
-                    pair.collider2
-                } else {
-                    pair.collider1
-                };
-                if pair.has_any_active_contact() && ep.phys.colliders[other].user_data == PERSON_TAG
-                {
-                    f.hit = true;
-                    ep.counts.hits_total += 1;
-                }
-            }
+            let colliders = &ep.phys.colliders;
+            f.touched = ep
+                .phys
+                .narrow_phase
+                .contact_pairs_with(f.collider)
+                .any(|pair| {
+                    let other = if pair.collider1 == f.collider {
+                        pair.collider2
+                    } else {
+                        pair.collider1
+                    };
+                    pair.has_any_active_contact() && colliders[other].user_data == PERSON_TAG
+                });
         }
         (f_spoon, f_robot)
     }
@@ -799,6 +817,15 @@ impl FeedingWorld {
                 f.state = FoodState::Spilled;
                 ep.counts.spilled_total += 1;
             }
+        }
+        // NOTE: a particle eaten this step may have brushed the lips on the way in; that
+        // is eating, not a hit. Every other touch of the person counts once per particle.
+        for f in ep.food.iter_mut() {
+            if f.touched && !f.hit && f.state != FoodState::Eaten {
+                f.hit = true;
+                ep.counts.hits_total += 1;
+            }
+            f.touched = false;
         }
         ep.steps += 1;
         let counts = FoodCounts {

@@ -197,6 +197,21 @@ impl Trajectory {
             }
         }
         if let Some(rp) = &self.replay {
+            if rp.n_food == 0 {
+                return Err(TrajectoryError::Shape {
+                    field: "replay.n_food",
+                    found: 0,
+                    expected: 1,
+                });
+            }
+            let poses = rp.spoon.iter().chain(&rp.head).chain(&rp.joints).flatten();
+            let points = rp.mouth.iter().chain(&rp.food).flatten();
+            if poses.chain(points).any(|x| !x.is_finite()) {
+                return Err(TrajectoryError::NonFinite {
+                    field: "replay",
+                    index: 0,
+                });
+            }
             check("replay.spoon", rp.spoon.len(), steps + 1)?;
             check("replay.head", rp.head.len(), steps + 1)?;
             check("replay.mouth", rp.mouth.len(), steps + 1)?;
