@@ -1,6 +1,12 @@
-//! Types shared by every pbrl process: the trajectory record an actor publishes (and, with
-//! the actor-learner core, the wire messages, key expressions and networks).
+//! Types shared by every pbrl process: the trajectory record an actor publishes, the wire
+//! messages and their key expressions, the observation normaliser.
 
+pub mod connect;
+pub mod keys;
+pub mod normalize;
 pub mod trajectory;
+pub mod wire;
 
+pub use keys::Keys;
+pub use normalize::RunningNorm;
 pub use trajectory::{Outcome, Replay, StepRewards, Trajectory, TrajectoryError};

@@ -1,0 +1,231 @@
+//! The messages that cross Zenoh: one envelope (format version, run id) around one body,
+//! serde + bincode. A receiver decodes with [`decode`], which refuses anything that does not
+//! decode, comes from another format or run, has the wrong dimensions or holds a
+//! non-finite number; the caller drops it with a warning and counts it.
+
+use serde::{Deserialize, Serialize};
+
+use crate::trajectory::{Trajectory, TrajectoryError};
+
+/// Version of the wire format; bumped whenever a message changes.
+pub const WIRE_FORMAT: u16 = 1;
+
+/// One named tensor of a network, row-major f32.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tensor {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+/// Policy weights as the learner publishes them, with the observation normaliser they
+/// were trained with, so that actors normalise exactly as the learner did.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Weights {
+    /// Counts up over the whole run, across restarts.
+    pub version: u64,
+    /// Env steps the learner had consumed when it made these weights.
+    pub env_steps: u64,
+    pub obs_dim: u32,
+    pub act_dim: u32,
+    /// The policy's tensors.
+    pub tensors: Vec<Tensor>,
+    /// Observation normaliser: running mean and variance, and the clip applied after.
+    pub obs_mean: Vec<f32>,
+    pub obs_var: Vec<f32>,
+    pub obs_clip: f32,
+}
+
+/// A trajectory from an actor, tagged with the policy version that acted.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryMsg {
+    pub actor: u32,
+    /// True for a deterministic evaluation episode.
+    pub eval: bool,
+    pub trajectory: Trajectory,
+}
+
+/// A request for deterministic evaluation episodes with weights of `version`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalRequest {
+    pub version: u64,
+    /// Episode seeds; actors split them by `seed % actors == actor`.
+    pub seeds: Vec<u64>,
+}
+
+/// Everything that travels.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Body {
+    Weights(Weights),
+    Trajectory(Box<TrajectoryMsg>),
+    EvalRequest(EvalRequest),
+    Stop,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct Envelope {
+    format: u16,
+    run: String,
+    body: Body,
+}
+
+/// Why a message was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum WireError {
+    #[error("message does not decode: {0}")]
+    Decode(String),
+    #[error("message format {found}, this build speaks {expected}")]
+    Format { found: u16, expected: u16 },
+    #[error("message for run {found:?}, this process is in run {expected:?}")]
+    Run { found: String, expected: String },
+    #[error("weights field {field} has {found} numbers, expected {expected}")]
+    Shape {
+        field: String,
+        found: usize,
+        expected: usize,
+    },
+    #[error("weights field {field} holds a non-finite value")]
+    NonFinite { field: String },
+    #[error(transparent)]
+    Trajectory(#[from] TrajectoryError),
+}
+
+/// Encode `body` for run `run`.
+pub fn encode(run: &str, body: &Body) -> Vec<u8> {
+    let env = EnvelopeRef {
+        format: WIRE_FORMAT,
+        run,
+        body,
+    };
+    // NOTE: encoding plain data into a Vec cannot fail.
+    bincode::serde::encode_to_vec(&env, bincode::config::standard())
+        .expect("encoding a message into memory cannot fail")
+}
+
+#[derive(Serialize)]
+struct EnvelopeRef<'a> {
+    format: u16,
+    run: &'a str,
+    body: &'a Body,
+}
+
+/// Decode a message for run `run` and check it.
+pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
+    let (env, _): (Envelope, usize) =
+        bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+            .map_err(|e| WireError::Decode(e.to_string()))?;
+    if env.format != WIRE_FORMAT {
+        return Err(WireError::Format {
+            found: env.format,
+            expected: WIRE_FORMAT,
+        });
+    }
+    if env.run != run {
+        return Err(WireError::Run {
+            found: env.run,
+            expected: run.to_string(),
+        });
+    }
+    match &env.body {
+        Body::Weights(w) => w.validate()?,
+        Body::Trajectory(t) => t.trajectory.validate()?,
+        Body::EvalRequest(_) | Body::Stop => {}
+    }
+    Ok(env.body)
+}
+
+impl Weights {
+    /// Check lengths against shapes and dimensions, and finiteness.
+    pub fn validate(&self) -> Result<(), WireError> {
+        let shape = |field: &str, found: usize, expected: usize| {
+            if found == expected {
+                Ok(())
+            } else {
+                Err(WireError::Shape {
+                    field: field.to_string(),
+                    found,
+                    expected,
+                })
+            }
+        };
+        let finite = |field: &str, xs: &[f32]| {
+            if xs.iter().all(|x| x.is_finite()) {
+                Ok(())
+            } else {
+                Err(WireError::NonFinite {
+                    field: field.to_string(),
+                })
+            }
+        };
+        shape("obs_mean", self.obs_mean.len(), self.obs_dim as usize)?;
+        shape("obs_var", self.obs_var.len(), self.obs_dim as usize)?;
+        finite("obs_mean", &self.obs_mean)?;
+        finite("obs_var", &self.obs_var)?;
+        finite("obs_clip", &[self.obs_clip])?;
+        for t in &self.tensors {
+            shape(&t.name, t.data.len(), t.shape.iter().product())?;
+            finite(&t.name, &t.data)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn weights() -> Weights {
+        Weights {
+            version: 4,
+            env_steps: 100,
+            obs_dim: 2,
+            act_dim: 1,
+            tensors: vec![Tensor {
+                name: "l0.weight".into(),
+                shape: vec![1, 2],
+                data: vec![0.5, -0.5],
+            }],
+            obs_mean: vec![0.0, 1.0],
+            obs_var: vec![1.0, 2.0],
+            obs_clip: 10.0,
+        }
+    }
+
+    #[test]
+    fn round_trip_and_refusals() {
+        let b = Body::Weights(weights());
+        assert_eq!(decode("r", &encode("r", &b)).unwrap(), b);
+        assert!(matches!(
+            decode("other", &encode("r", &b)),
+            Err(WireError::Run { .. })
+        ));
+        assert!(matches!(decode("r", &[0, 1, 2]), Err(WireError::Decode(_))));
+        let mut w = weights();
+        w.tensors[0].data.push(1.0);
+        let e = decode("r", &encode("r", &Body::Weights(w))).unwrap_err();
+        assert!(e.to_string().contains("l0.weight"), "{e}");
+        let mut w = weights();
+        w.obs_var[1] = f32::NAN;
+        assert!(matches!(
+            decode("r", &encode("r", &Body::Weights(w))),
+            Err(WireError::NonFinite { .. })
+        ));
+        let mut w = weights();
+        w.obs_mean.pop();
+        assert!(matches!(
+            decode("r", &encode("r", &Body::Weights(w))),
+            Err(WireError::Shape { .. })
+        ));
+        // Another format version is refused.
+        let env = Envelope {
+            format: WIRE_FORMAT + 1,
+            run: "r".into(),
+            body: Body::Stop,
+        };
+        let bytes = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
+        assert!(matches!(
+            decode("r", &bytes),
+            Err(WireError::Format { found: 2, .. })
+        ));
+    }
+}
