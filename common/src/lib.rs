@@ -3,6 +3,7 @@
 
 pub mod connect;
 pub mod keys;
+pub mod nets;
 pub mod normalize;
 pub mod trajectory;
 pub mod wire;

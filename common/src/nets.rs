@@ -1,0 +1,328 @@
+//! The networks actors and learner share (candle, CPU, f32): MLPs, the tanh-squashed
+//! Gaussian policy, the value network and the twin Q critics. Each trainable network owns
+//! its own `VarMap`; weights travel as named tensors ([`crate::wire::Weights`]).
+
+use candle_core::{DType, Device, Result, Tensor, D};
+use candle_nn::{Linear, Module, VarBuilder, VarMap};
+use rand::Rng;
+
+use crate::wire;
+
+/// Bounds of the policy's log standard deviation (CleanRL's SAC).
+pub const LOG_STD_MIN: f64 = -5.0;
+pub const LOG_STD_MAX: f64 = 2.0;
+
+/// A multilayer perceptron: ReLU between layers, none after the last.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    layers: Vec<Linear>,
+}
+
+impl Mlp {
+    /// Layers `sizes[0] -> sizes[1] -> ... -> sizes[n-1]`, named `l0`, `l1`, ...
+    pub fn new(vb: VarBuilder, sizes: &[usize]) -> Result<Self> {
+        let layers = sizes
+            .windows(2)
+            .enumerate()
+            .map(|(i, w)| candle_nn::linear(w[0], w[1], vb.pp(format!("l{i}"))))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { layers })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mut h = x.clone();
+        for (i, l) in self.layers.iter().enumerate() {
+            h = l.forward(&h)?;
+            if i + 1 < self.layers.len() {
+                h = h.relu()?;
+            }
+        }
+        Ok(h)
+    }
+}
+
+/// The layer sizes of an MLP from `input` through `hidden` to `output`.
+fn sizes(input: usize, hidden: &[usize], output: usize) -> Vec<usize> {
+    std::iter::once(input)
+        .chain(hidden.iter().copied())
+        .chain(std::iter::once(output))
+        .collect()
+}
+
+/// Re-initialise every variable of `varmap` from `rng`, in name order, as PyTorch's
+/// `nn.Linear` does: weights and biases from U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
+/// (candle's own random generator cannot be seeded.)
+pub fn init_seeded(varmap: &VarMap, rng: &mut impl Rng) -> Result<()> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &data[name];
+        let fan_in = match name.strip_suffix(".bias") {
+            Some(stem) => data
+                .get(&format!("{stem}.weight"))
+                .map(|w| w.dims()[1])
+                .unwrap_or(1),
+            None => var.dims().last().copied().unwrap_or(1),
+        };
+        let b = 1.0 / (fan_in as f32).sqrt();
+        let vals: Vec<f32> = (0..var.elem_count())
+            .map(|_| rng.random_range(-b..b))
+            .collect();
+        var.set(&Tensor::from_vec(vals, var.shape(), var.device())?)?;
+    }
+    Ok(())
+}
+
+/// Every variable of `varmap` as named tensors, in name order.
+pub fn export(varmap: &VarMap) -> Result<Vec<wire::Tensor>> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    names
+        .into_iter()
+        .map(|name| {
+            let t = data[name].as_tensor();
+            Ok(wire::Tensor {
+                name: name.clone(),
+                shape: t.dims().to_vec(),
+                data: t.flatten_all()?.to_vec1::<f32>()?,
+            })
+        })
+        .collect()
+}
+
+/// Set the variables of `varmap` from named tensors; every variable must be given, with
+/// its shape.
+pub fn import(varmap: &VarMap, tensors: &[wire::Tensor]) -> Result<()> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
+    if tensors.len() != data.len() {
+        candle_core::bail!(
+            "weights hold {} tensors, the network has {}",
+            tensors.len(),
+            data.len()
+        );
+    }
+    for t in tensors {
+        let Some(var) = data.get(&t.name) else {
+            candle_core::bail!(
+                "weights hold tensor {:?}, which the network does not have",
+                t.name
+            );
+        };
+        if var.dims() != t.shape.as_slice() {
+            candle_core::bail!(
+                "tensor {:?} has shape {:?}, the network's is {:?}",
+                t.name,
+                t.shape,
+                var.dims()
+            );
+        }
+        var.set(&Tensor::from_slice(
+            &t.data,
+            t.shape.as_slice(),
+            var.device(),
+        )?)?;
+    }
+    Ok(())
+}
+
+/// log(1 + exp(x)), stable for large |x|.
+pub fn softplus(x: &Tensor) -> Result<Tensor> {
+    // max(x, 0) + log(1 + exp(-|x|))
+    x.relu()? + (x.abs()?.neg()?.exp()? + 1.0)?.log()?
+}
+
+/// A tanh-squashed Gaussian policy: the MLP gives the mean and log standard deviation of a
+/// Gaussian over pre-squash actions u; the action is tanh(u), in (-1, 1).
+#[derive(Clone, Debug)]
+pub struct GaussianPolicy {
+    mlp: Mlp,
+    act_dim: usize,
+}
+
+impl GaussianPolicy {
+    pub fn new(vb: VarBuilder, obs_dim: usize, hidden: &[usize], act_dim: usize) -> Result<Self> {
+        Ok(Self {
+            mlp: Mlp::new(vb.pp("pi"), &sizes(obs_dim, hidden, 2 * act_dim))?,
+            act_dim,
+        })
+    }
+
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// Mean and log standard deviation, `[batch, act_dim]` each; the log-std is squashed
+    /// smoothly into [LOG_STD_MIN, LOG_STD_MAX].
+    pub fn dist(&self, obs: &Tensor) -> Result<(Tensor, Tensor)> {
+        let out = self.mlp.forward(obs)?;
+        let mean = out.narrow(D::Minus1, 0, self.act_dim)?;
+        let raw = out.narrow(D::Minus1, self.act_dim, self.act_dim)?;
+        // NOTE: tanh then affine, as CleanRL, rather than a hard clamp whose gradient dies.
+        let log_std = raw.tanh()?.affine(
+            (LOG_STD_MAX - LOG_STD_MIN) / 2.0,
+            (LOG_STD_MAX + LOG_STD_MIN) / 2.0,
+        )?;
+        Ok((mean, log_std))
+    }
+
+    /// A reparameterised sample `tanh(mean + std * eps)` for given standard normal noise
+    /// `eps`, and its log-probability (summed over action dimensions, `[batch, 1]`).
+    pub fn sample(&self, obs: &Tensor, eps: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (mean, log_std) = self.dist(obs)?;
+        let u = (&mean + (log_std.exp()? * eps)?)?;
+        let logp = squashed_log_prob(&u, &mean, &log_std)?;
+        Ok((u.tanh()?, logp))
+    }
+
+    /// Log-probability of actions `a` in (-1, 1) (`[batch, 1]`).
+    pub fn log_prob(&self, obs: &Tensor, a: &Tensor) -> Result<Tensor> {
+        let (mean, log_std) = self.dist(obs)?;
+        // NOTE: atanh of an action clamped away from +-1, where the density is singular.
+        let a = a.clamp(-1.0 + 1e-6, 1.0 - 1e-6)?;
+        let u = (((&a + 1.0)? / (1.0 - &a)?)?.log()? * 0.5)?;
+        squashed_log_prob(&u, &mean, &log_std)
+    }
+
+    /// The deterministic action tanh(mean).
+    pub fn deterministic(&self, obs: &Tensor) -> Result<Tensor> {
+        self.dist(obs)?.0.tanh()
+    }
+}
+
+/// log N(u; mean, exp(log_std)) summed over the last dimension, minus the log-Jacobian of
+/// tanh: log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)).
+pub fn squashed_log_prob(u: &Tensor, mean: &Tensor, log_std: &Tensor) -> Result<Tensor> {
+    let z = ((u - mean)? / log_std.exp()?)?;
+    let half_log_2pi = 0.5 * (2.0 * std::f64::consts::PI).ln();
+    let gauss = ((z.sqr()? * -0.5)? - log_std)?.affine(1.0, -half_log_2pi)?;
+    let log_jac = ((u.affine(-1.0, 2f64.ln())? - softplus(&u.affine(-2.0, 0.0)?)?)? * 2.0)?;
+    (gauss - log_jac)?.sum_keepdim(D::Minus1)
+}
+
+/// A state-value network.
+#[derive(Clone, Debug)]
+pub struct ValueNet {
+    mlp: Mlp,
+}
+
+impl ValueNet {
+    pub fn new(vb: VarBuilder, obs_dim: usize, hidden: &[usize]) -> Result<Self> {
+        Ok(Self {
+            mlp: Mlp::new(vb.pp("v"), &sizes(obs_dim, hidden, 1))?,
+        })
+    }
+
+    /// Values, `[batch, 1]`.
+    pub fn forward(&self, obs: &Tensor) -> Result<Tensor> {
+        self.mlp.forward(obs)
+    }
+}
+
+/// Two Q networks over (observation, action).
+#[derive(Clone, Debug)]
+pub struct TwinQ {
+    q1: Mlp,
+    q2: Mlp,
+}
+
+impl TwinQ {
+    pub fn new(vb: VarBuilder, obs_dim: usize, act_dim: usize, hidden: &[usize]) -> Result<Self> {
+        let s = sizes(obs_dim + act_dim, hidden, 1);
+        Ok(Self {
+            q1: Mlp::new(vb.pp("q1"), &s)?,
+            q2: Mlp::new(vb.pp("q2"), &s)?,
+        })
+    }
+
+    /// Both Q values, `[batch, 1]` each.
+    pub fn forward(&self, obs: &Tensor, act: &Tensor) -> Result<(Tensor, Tensor)> {
+        let x = Tensor::cat(&[obs, act], D::Minus1)?;
+        Ok((self.q1.forward(&x)?, self.q2.forward(&x)?))
+    }
+}
+
+/// A network and the `VarMap` that owns its variables.
+pub struct Owned<M> {
+    pub varmap: VarMap,
+    pub net: M,
+}
+
+impl<M> Owned<M> {
+    /// Build a network in a fresh `VarMap` and initialise it from `rng`.
+    pub fn build(rng: &mut impl Rng, f: impl FnOnce(VarBuilder) -> Result<M>) -> Result<Self> {
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let net = f(vb)?;
+        init_seeded(&varmap, rng)?;
+        Ok(Self { varmap, net })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn t2(rows: &[&[f32]]) -> Tensor {
+        let flat: Vec<f32> = rows.iter().flat_map(|r| r.iter().copied()).collect();
+        Tensor::from_vec(flat, (rows.len(), rows[0].len()), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn tanh_gaussian_log_prob_matches_the_reference() {
+        // Reference (Python, math module only):
+        //   import math
+        //   def lp(u, m, s):
+        //       z = (u - m) / math.exp(s)
+        //       g = -0.5 * z * z - s - 0.5 * math.log(2 * math.pi)
+        //       return g - math.log(1 - math.tanh(u) ** 2)
+        //   mean, log_std, eps = [0.1, -0.2], [-0.5, 0.3], [0.3, -1.2]
+        //   u = [m + math.exp(s) * e for m, s, e in zip(mean, log_std, eps)]
+        //   print(sum(lp(*x) for x in zip(u, mean, log_std)))   # -0.0191962
+        let mean = t2(&[&[0.1, -0.2]]);
+        let log_std = t2(&[&[-0.5, 0.3]]);
+        let eps = t2(&[&[0.3, -1.2]]);
+        let u = (&mean + (log_std.exp().unwrap() * &eps).unwrap()).unwrap();
+        let lp = squashed_log_prob(&u, &mean, &log_std).unwrap();
+        let v = lp.flatten_all().unwrap().to_vec1::<f32>().unwrap()[0];
+        assert!((v - (-0.0191962)).abs() < 1e-4, "{v}");
+    }
+
+    #[test]
+    fn policy_log_prob_of_its_own_sample_agrees_and_weights_round_trip() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let p = Owned::build(&mut rng, |vb| GaussianPolicy::new(vb, 3, &[16, 16], 2)).unwrap();
+        let obs = t2(&[&[0.5, -1.0, 0.2], &[0.0, 0.3, -0.7]]);
+        let eps = t2(&[&[0.1, -0.4], &[1.2, 0.0]]);
+        let (a, lp) = p.net.sample(&obs, &eps).unwrap();
+        let lp2 = p.net.log_prob(&obs, &a).unwrap();
+        let d = (lp - lp2).unwrap().abs().unwrap().max_keepdim(0).unwrap();
+        assert!(d.flatten_all().unwrap().to_vec1::<f32>().unwrap()[0] < 1e-3);
+        // Same seed, same weights; export then import gives the same actions.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let q = Owned::build(&mut rng, |vb| GaussianPolicy::new(vb, 3, &[16, 16], 2)).unwrap();
+        assert_eq!(export(&p.varmap).unwrap(), export(&q.varmap).unwrap());
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let r = Owned::build(&mut rng, |vb| GaussianPolicy::new(vb, 3, &[16, 16], 2)).unwrap();
+        assert_ne!(export(&p.varmap).unwrap(), export(&r.varmap).unwrap());
+        import(&r.varmap, &export(&p.varmap).unwrap()).unwrap();
+        let (ra, _) = r.net.sample(&obs, &eps).unwrap();
+        assert_eq!(a.to_vec2::<f32>().unwrap(), ra.to_vec2::<f32>().unwrap());
+        // A tensor of the wrong shape is refused with its name.
+        let mut bad = export(&p.varmap).unwrap();
+        bad[0].shape = vec![1, bad[0].data.len()];
+        let e = import(&r.varmap, &bad).unwrap_err();
+        assert!(e.to_string().contains(&bad[0].name), "{e}");
+    }
+}
