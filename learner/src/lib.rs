@@ -1,2 +1,4 @@
-//! The learner: PPO and SAC backbones, the reward ensemble and query selection. Built by
-//! the actor-learner issue; empty until then.
+//! The learner: the RL backbones (SAC now; PPO, the reward ensemble and query selection
+//! come with their issues), each in one file that reads like its paper.
+
+pub mod optim;
