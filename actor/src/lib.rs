@@ -3,6 +3,7 @@
 
 pub mod config;
 pub mod kinematics;
+pub mod point;
 pub mod scene;
 pub mod world;
 

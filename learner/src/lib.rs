@@ -2,3 +2,4 @@
 //! come with their issues), each in one file that reads like its paper.
 
 pub mod optim;
+pub mod sac;

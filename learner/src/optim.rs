@@ -43,7 +43,8 @@ impl Adam {
             .data()
             .lock()
             .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
-        let mut vars: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        let mut vars: Vec<(String, Var)> =
+            data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         vars.sort_by(|a, b| a.0.cmp(&b.0));
         drop(data);
         Self::new(vars, lr)
@@ -75,7 +76,11 @@ pub fn clip_grad_norm(vars: &[(String, Var)], grads: &mut GradStore, max_norm: f
     let mut sq = 0f64;
     for (_, v) in vars {
         if let Some(g) = grads.get(v) {
-            sq += g.sqr()?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+            sq += g
+                .sqr()?
+                .sum_all()?
+                .to_dtype(DType::F64)?
+                .to_scalar::<f64>()?;
         }
     }
     let norm = sq.sqrt();
@@ -114,7 +119,10 @@ mod tests {
             opt.step(&loss.backward().unwrap()).unwrap();
         }
         let v = p.as_tensor().to_vec1::<f32>().unwrap();
-        assert!((v[0] - 0.701_586_3).abs() < 1e-5 && (v[1] + 1.700_623_4).abs() < 1e-5, "{v:?}");
+        assert!(
+            (v[0] - 0.701_586_3).abs() < 1e-5 && (v[1] + 1.700_623_4).abs() < 1e-5,
+            "{v:?}"
+        );
         assert_eq!(opt.t, 3);
     }
 
@@ -128,6 +136,9 @@ mod tests {
         let norm = clip_grad_norm(&vars, &mut grads, 0.5).unwrap();
         assert!((norm - 5.0).abs() < 1e-5);
         let g = grads.get(&p).unwrap().to_vec1::<f32>().unwrap();
-        assert!((g[0] - 0.3).abs() < 1e-4 && (g[1] - 0.4).abs() < 1e-4, "{g:?}");
+        assert!(
+            (g[0] - 0.3).abs() < 1e-4 && (g[1] - 0.4).abs() < 1e-4,
+            "{g:?}"
+        );
     }
 }

@@ -1,0 +1,424 @@
+//! Soft actor-critic (Haarnoja et al. 2018) with twin Q critics and a learned entropy
+//! temperature, as PEBBLE uses it (`shared/method.md` section 6).
+//!
+//! The learner feeds it whole trajectories ([`Sac::observe`]); the update-to-data ratio is
+//! enforced here ([`Sac::updates_due`]): one gradient step per `update_every` env steps,
+//! however many actors there are and however fast they run.
+
+use candle_core::{DType, Device, Result, Tensor, Var};
+use candle_nn::VarMap;
+use pbrl_common::nets::{export, GaussianPolicy, Owned, TwinQ};
+use pbrl_common::{StepRewards, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+use crate::optim::Adam;
+
+/// SAC's settings (defaults from `shared/method.md`, at the 256x256 size of SB3 and
+/// CleanRL; the authors' 512x512 / batch 512 is the `paper` preset).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SacConfig {
+    /// Hidden layer sizes of the actor and of each critic.
+    pub hidden: Vec<usize>,
+    /// Minibatch size of a gradient step.
+    pub batch: usize,
+    /// Discount.
+    pub gamma: f64,
+    /// Polyak rate of the target critics.
+    pub tau: f64,
+    /// Adam learning rate of actor, critics and temperature.
+    pub lr: f64,
+    /// Initial entropy temperature.
+    pub init_alpha: f64,
+    /// Target entropy (default: -action dimension).
+    pub target_entropy: Option<f64>,
+    /// Replay buffer capacity (transitions).
+    pub replay_capacity: usize,
+    /// Env steps of uniformly random actions before learning starts.
+    pub random_steps: u64,
+    /// One gradient step per this many env steps (the update-to-data ratio's inverse).
+    pub update_every: u64,
+    /// Seed of initialisation, minibatches and sampling noise.
+    pub seed: u64,
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            hidden: vec![256, 256],
+            batch: 256,
+            gamma: 0.99,
+            tau: 0.005,
+            lr: 3e-4,
+            init_alpha: 0.1,
+            target_entropy: None,
+            replay_capacity: 1_000_000,
+            random_steps: 600,
+            update_every: 10,
+            seed: 0,
+        }
+    }
+}
+
+/// The soft Bellman target y = r + gamma (1 - done) (min(Q1', Q2') - alpha log pi(a'|s')).
+pub fn soft_q_target(
+    reward: &Tensor,
+    done: &Tensor,
+    q1_next: &Tensor,
+    q2_next: &Tensor,
+    logp_next: &Tensor,
+    alpha: f64,
+    gamma: f64,
+) -> Result<Tensor> {
+    let soft = (q1_next.minimum(q2_next)? - (logp_next * alpha)?)?;
+    // NOTE: `done` is termination only; a time limit (truncation) still bootstraps.
+    let not_done = done.affine(-1.0, 1.0)?;
+    reward + ((not_done * soft)? * gamma)?
+}
+
+/// The temperature loss -mean(log_alpha (log pi + target_entropy)), the log-probabilities
+/// taken as constants.
+pub fn temperature_loss(log_alpha: &Tensor, logp: &Tensor, target_entropy: f64) -> Result<Tensor> {
+    let gap = (logp.detach() + target_entropy)?;
+    (gap.broadcast_mul(log_alpha)?.mean_all()?).neg()
+}
+
+/// Transitions, flat f32 rows, overwritten oldest first once full.
+pub struct Replay {
+    obs_dim: usize,
+    act_dim: usize,
+    capacity: usize,
+    len: usize,
+    next: usize,
+    obs: Vec<f32>,
+    act: Vec<f32>,
+    rew: Vec<f32>,
+    next_obs: Vec<f32>,
+    done: Vec<f32>,
+}
+
+impl Replay {
+    pub fn new(obs_dim: usize, act_dim: usize, capacity: usize) -> Self {
+        Self {
+            obs_dim,
+            act_dim,
+            capacity,
+            len: 0,
+            next: 0,
+            obs: Vec::new(),
+            act: Vec::new(),
+            rew: Vec::new(),
+            next_obs: Vec::new(),
+            done: Vec::new(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    pub fn push(&mut self, obs: &[f32], act: &[f32], rew: f32, next_obs: &[f32], done: bool) {
+        let (o, a, i) = (self.obs_dim, self.act_dim, self.next);
+        if self.len < self.capacity {
+            self.obs.extend_from_slice(obs);
+            self.act.extend_from_slice(act);
+            self.rew.push(rew);
+            self.next_obs.extend_from_slice(next_obs);
+            self.done.push(done as u8 as f32);
+            self.len += 1;
+        } else {
+            self.obs[i * o..(i + 1) * o].copy_from_slice(obs);
+            self.act[i * a..(i + 1) * a].copy_from_slice(act);
+            self.rew[i] = rew;
+            self.next_obs[i * o..(i + 1) * o].copy_from_slice(next_obs);
+            self.done[i] = done as u8 as f32;
+        }
+        self.next = (self.next + 1) % self.capacity;
+    }
+
+    /// A uniform minibatch: (obs, act, rew [n,1], next_obs, done [n,1]).
+    fn sample(&self, rng: &mut impl Rng, n: usize) -> Result<[Tensor; 5]> {
+        let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..self.len)).collect();
+        let rows = |src: &[f32], w: usize| -> Result<Tensor> {
+            let mut out = Vec::with_capacity(n * w);
+            for &i in &idx {
+                out.extend_from_slice(&src[i * w..(i + 1) * w]);
+            }
+            Tensor::from_vec(out, (n, w), &Device::Cpu)
+        };
+        Ok([
+            rows(&self.obs, self.obs_dim)?,
+            rows(&self.act, self.act_dim)?,
+            rows(&self.rew, 1)?,
+            rows(&self.next_obs, self.obs_dim)?,
+            rows(&self.done, 1)?,
+        ])
+    }
+}
+
+/// Losses of one gradient step.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SacLosses {
+    pub critic: f32,
+    pub actor: f32,
+    pub alpha_loss: f32,
+    pub alpha: f32,
+    pub entropy: f32,
+}
+
+/// The SAC learner state.
+pub struct Sac {
+    pub cfg: SacConfig,
+    obs_dim: usize,
+    act_dim: usize,
+    pub policy: Owned<GaussianPolicy>,
+    critic: Owned<TwinQ>,
+    target: Owned<TwinQ>,
+    log_alpha: Var,
+    pi_opt: Adam,
+    q_opt: Adam,
+    alpha_opt: Adam,
+    pub replay: Replay,
+    rng: ChaCha8Rng,
+    /// Env steps observed.
+    pub env_steps: u64,
+    /// Gradient steps taken.
+    pub updates: u64,
+}
+
+fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
+    pbrl_common::nets::import(to, &export(from)?)
+}
+
+impl Sac {
+    pub fn new(cfg: SacConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        let h = cfg.hidden.clone();
+        let policy = Owned::build(&mut rng, |vb| GaussianPolicy::new(vb, obs_dim, &h, act_dim))?;
+        let critic = Owned::build(&mut rng, |vb| TwinQ::new(vb, obs_dim, act_dim, &h))?;
+        let target = Owned::build(&mut rng, |vb| TwinQ::new(vb, obs_dim, act_dim, &h))?;
+        copy_vars(&critic.varmap, &target.varmap)?;
+        let log_alpha = Var::from_slice(&[cfg.init_alpha.ln() as f32], 1, &Device::Cpu)?;
+        let pi_opt = Adam::for_varmap(&policy.varmap, cfg.lr)?;
+        let q_opt = Adam::for_varmap(&critic.varmap, cfg.lr)?;
+        let alpha_opt = Adam::new(vec![("log_alpha".into(), log_alpha.clone())], cfg.lr)?;
+        let replay = Replay::new(obs_dim, act_dim, cfg.replay_capacity);
+        Ok(Self {
+            cfg,
+            obs_dim,
+            act_dim,
+            policy,
+            critic,
+            target,
+            log_alpha,
+            pi_opt,
+            q_opt,
+            alpha_opt,
+            replay,
+            rng,
+            env_steps: 0,
+            updates: 0,
+        })
+    }
+
+    pub fn alpha(&self) -> Result<f64> {
+        Ok(self.log_alpha.as_tensor().exp()?.to_vec1::<f32>()?[0] as f64)
+    }
+
+    /// Store every transition of `t`, rewarded by `reward` (the ground truth, the task
+    /// reward or a learnt one).
+    pub fn observe(&mut self, t: &Trajectory, reward: impl Fn(&StepRewards) -> f32) {
+        let last = t.steps().saturating_sub(1);
+        for k in 0..t.steps() {
+            let done = k == last && t.outcome.terminated;
+            self.replay.push(
+                t.obs_at(k),
+                t.action_at(k),
+                reward(&t.rewards[k]),
+                t.obs_at(k + 1),
+                done,
+            );
+        }
+        self.env_steps += t.steps() as u64;
+    }
+
+    /// Gradient steps owed: one per `update_every` env steps once the random steps are
+    /// done, less those taken.
+    pub fn updates_due(&self) -> u64 {
+        if self.env_steps < self.cfg.random_steps.max(self.cfg.batch as u64) {
+            return 0;
+        }
+        (self.env_steps / self.cfg.update_every.max(1)).saturating_sub(self.updates)
+    }
+
+    fn noise(&mut self, n: usize) -> Result<Tensor> {
+        let v: Vec<f32> = (0..n * self.act_dim)
+            .map(|_| self.rng.sample(StandardNormal))
+            .collect();
+        Tensor::from_vec(v, (n, self.act_dim), &Device::Cpu)
+    }
+
+    /// One gradient step on critics, actor and temperature, then the target update.
+    pub fn update(&mut self) -> Result<SacLosses> {
+        let n = self.cfg.batch;
+        let [obs, act, rew, next_obs, done] = self.replay.sample(&mut self.rng, n)?;
+        let alpha = self.alpha()?;
+
+        // Targets, without gradients.
+        let eps = self.noise(n)?;
+        let (a_next, logp_next) = self.policy.net.sample(&next_obs, &eps)?;
+        let (q1n, q2n) = self.target.net.forward(&next_obs, &a_next)?;
+        let y = soft_q_target(&rew, &done, &q1n, &q2n, &logp_next, alpha, self.cfg.gamma)?.detach();
+
+        // Critics.
+        let (q1, q2) = self.critic.net.forward(&obs, &act)?;
+        let critic_loss = ((q1 - &y)?.sqr()?.mean_all()? + (q2 - &y)?.sqr()?.mean_all()?)?;
+        self.q_opt.step(&critic_loss.backward()?)?;
+
+        // Actor: maximise min Q - alpha log pi. NOTE: gradients reach the critics' weights
+        // here too, but only the actor's optimiser steps on this loss.
+        let eps = self.noise(n)?;
+        let (a_pi, logp) = self.policy.net.sample(&obs, &eps)?;
+        let (q1p, q2p) = self.critic.net.forward(&obs, &a_pi)?;
+        let actor_loss = ((&logp * alpha)? - q1p.minimum(&q2p)?)?.mean_all()?;
+        self.pi_opt.step(&actor_loss.backward()?)?;
+
+        // Temperature.
+        let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.act_dim as f64));
+        let alpha_loss = temperature_loss(self.log_alpha.as_tensor(), &logp, target_entropy)?;
+        self.alpha_opt.step(&alpha_loss.backward()?)?;
+
+        // Polyak: target <- tau * critic + (1 - tau) * target.
+        let tau = self.cfg.tau;
+        {
+            let src = self
+                .critic
+                .varmap
+                .data()
+                .lock()
+                .map_err(|_| candle_core::Error::Msg("poisoned".into()))?;
+            let dst = self
+                .target
+                .varmap
+                .data()
+                .lock()
+                .map_err(|_| candle_core::Error::Msg("poisoned".into()))?;
+            for (name, t) in dst.iter() {
+                let s = &src[name];
+                t.set(&((s.as_tensor() * tau)? + (t.as_tensor() * (1.0 - tau))?)?)?;
+            }
+        }
+        self.updates += 1;
+        let scalar = |t: &Tensor| -> Result<f32> { t.to_dtype(DType::F32)?.to_scalar::<f32>() };
+        Ok(SacLosses {
+            critic: scalar(&critic_loss)?,
+            actor: scalar(&actor_loss)?,
+            alpha_loss: scalar(&alpha_loss)?,
+            alpha: alpha as f32,
+            entropy: -scalar(&logp.mean_all()?)?,
+        })
+    }
+
+    /// The deterministic action for one observation.
+    pub fn act_deterministic(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        let o = Tensor::from_slice(obs, (1, self.obs_dim), &Device::Cpu)?;
+        self.policy
+            .net
+            .deterministic(&o)?
+            .squeeze(0)?
+            .to_vec1::<f32>()
+    }
+
+    /// A sampled action for one observation.
+    pub fn act_stochastic(&mut self, obs: &[f32]) -> Result<Vec<f32>> {
+        let o = Tensor::from_slice(obs, (1, self.obs_dim), &Device::Cpu)?;
+        let eps = self.noise(1)?;
+        self.policy
+            .net
+            .sample(&o, &eps)?
+            .0
+            .squeeze(0)?
+            .to_vec1::<f32>()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn col(v: &[f32]) -> Tensor {
+        Tensor::from_slice(v, (v.len(), 1), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn soft_target_matches_the_reference() {
+        // Reference (Python):
+        //   r, d, q1, q2, lp = [1.0, -0.5], [0.0, 1.0], [2.0, 3.0], [1.5, 4.0], [-1.0, 0.5]
+        //   alpha, gamma = 0.2, 0.99
+        //   [ri + gamma * (1 - di) * (min(a, b) - alpha * l)
+        //    for ri, di, a, b, l in zip(r, d, q1, q2, lp)]   # [2.683, -0.5]
+        let y = soft_q_target(
+            &col(&[1.0, -0.5]),
+            &col(&[0.0, 1.0]),
+            &col(&[2.0, 3.0]),
+            &col(&[1.5, 4.0]),
+            &col(&[-1.0, 0.5]),
+            0.2,
+            0.99,
+        )
+        .unwrap();
+        let y = y.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(
+            (y[0] - 2.683).abs() < 1e-5 && (y[1] + 0.5).abs() < 1e-6,
+            "{y:?}"
+        );
+    }
+
+    #[test]
+    fn temperature_loss_and_its_gradient_match_the_reference() {
+        // Reference (Python): log_alpha = -1.0, logp = [-3.0, -5.0], target = -2.0
+        //   loss = -mean(log_alpha * (lp + target)) = -(-1) * mean([-5, -7]) = -6.0
+        //   d loss / d log_alpha = -mean([-5, -7]) = 6.0  (alpha grows when entropy is low)
+        let la = Var::from_slice(&[-1.0f32], 1, &Device::Cpu).unwrap();
+        let loss = temperature_loss(la.as_tensor(), &col(&[-3.0, -5.0]), -2.0).unwrap();
+        assert!((loss.to_scalar::<f32>().unwrap() + 6.0).abs() < 1e-6);
+        let g = loss.backward().unwrap();
+        let g = g.get(&la).unwrap().to_vec1::<f32>().unwrap();
+        assert!((g[0] - 6.0).abs() < 1e-6, "{g:?}");
+    }
+
+    #[test]
+    fn updates_follow_the_update_to_data_ratio() {
+        let cfg = SacConfig {
+            hidden: vec![8],
+            batch: 4,
+            random_steps: 20,
+            update_every: 10,
+            ..SacConfig::default()
+        };
+        let mut sac = Sac::new(cfg, 2, 1).unwrap();
+        let t = Trajectory {
+            format: pbrl_common::trajectory::TRAJECTORY_FORMAT,
+            obs_dim: 2,
+            act_dim: 1,
+            obs: vec![0.1; 2 * 11],
+            actions: vec![0.5; 10],
+            rewards: vec![StepRewards::default(); 10],
+            ..Trajectory::default()
+        };
+        sac.observe(&t, |r| r.truth);
+        assert_eq!(sac.updates_due(), 0, "still in the random steps");
+        sac.observe(&t, |r| r.truth);
+        sac.observe(&t, |r| r.truth);
+        assert_eq!(sac.env_steps, 30);
+        assert_eq!(sac.updates_due(), 3);
+        sac.update().unwrap();
+        assert_eq!(sac.updates_due(), 2);
+    }
+}
