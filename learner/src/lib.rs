@@ -2,4 +2,5 @@
 //! come with their issues), each in one file that reads like its paper.
 
 pub mod optim;
+pub mod ppo;
 pub mod sac;

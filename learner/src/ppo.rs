@@ -1,0 +1,355 @@
+//! Proximal policy optimisation (Schulman et al. 2017), as PrefPPO uses it
+//! (`shared/method.md` section 6): separate policy and value MLPs, GAE, clipped surrogate
+//! with learning rate and clip range decaying linearly to 0, early stop on approximate KL,
+//! advantages normalised per minibatch, observations normalised by running statistics.
+//!
+//! Synchronous: [`Ppo::train`] takes the trajectories of one rollout, all acted by the
+//! current weights (the caller drops those of older versions), so the old log-probabilities
+//! are recomputed here with the very policy and normaliser that acted.
+
+use candle_core::{Device, Result, Tensor};
+use pbrl_common::nets::{GaussianPolicy, Owned, ValueNet};
+use pbrl_common::{RunningNorm, StepRewards, Trajectory};
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::optim::{clip_grad_norm, Adam};
+
+/// PPO's settings (defaults from `shared/method.md`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PpoConfig {
+    /// Hidden layer sizes of the policy and of the value network (authors: 512x512).
+    pub hidden: Vec<usize>,
+    /// Env steps per rollout (16 envs x 200 steps).
+    pub rollout_steps: usize,
+    /// Passes over a rollout.
+    pub epochs: usize,
+    pub minibatch: usize,
+    pub gamma: f64,
+    pub gae_lambda: f64,
+    /// Clip range at the start; decays linearly to 0 over the run.
+    pub clip: f64,
+    /// Learning rate at the start; decays linearly to 0 over the run.
+    pub lr: f64,
+    pub value_coef: f64,
+    pub max_grad_norm: f64,
+    /// Stop a rollout's epochs once the approximate KL exceeds 1.5 x this.
+    pub target_kl: f64,
+    /// Clip of normalised observations.
+    pub obs_clip: f64,
+    pub seed: u64,
+}
+
+impl Default for PpoConfig {
+    fn default() -> Self {
+        Self {
+            hidden: vec![512, 512],
+            rollout_steps: 16 * 200,
+            epochs: 10,
+            minibatch: 256,
+            gamma: 0.99,
+            gae_lambda: 0.98,
+            clip: 0.2,
+            lr: 3e-4,
+            value_coef: 0.5,
+            max_grad_norm: 0.5,
+            target_kl: 0.03,
+            obs_clip: 10.0,
+            seed: 0,
+        }
+    }
+}
+
+/// Generalised advantage estimation over one episode.
+///
+/// `values` has one more entry than `rewards`: the value of the state after the last step,
+/// used to bootstrap when the episode was cut by the time limit (`terminated == false`).
+/// Returns (advantages, returns = advantages + values).
+pub fn gae(
+    rewards: &[f32],
+    values: &[f32],
+    terminated: bool,
+    gamma: f64,
+    lambda: f64,
+) -> (Vec<f32>, Vec<f32>) {
+    let n = rewards.len();
+    let mut adv = vec![0.0f32; n];
+    let mut running = 0.0f64;
+    for t in (0..n).rev() {
+        // NOTE: only a real terminal state cuts the bootstrap; a time limit does not.
+        let next_value = if t + 1 == n && terminated {
+            0.0
+        } else {
+            values[t + 1] as f64
+        };
+        let delta = rewards[t] as f64 + gamma * next_value - values[t] as f64;
+        running = delta + gamma * lambda * running;
+        adv[t] = running as f32;
+    }
+    let ret = adv.iter().zip(values).map(|(a, v)| a + v).collect();
+    (adv, ret)
+}
+
+/// The clipped surrogate loss -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)),
+/// r = exp(logp_new - logp_old).
+pub fn clipped_policy_loss(
+    logp_new: &Tensor,
+    logp_old: &Tensor,
+    adv: &Tensor,
+    clip: f64,
+) -> Result<Tensor> {
+    let ratio = (logp_new - logp_old)?.exp()?;
+    let unclipped = (&ratio * adv)?;
+    let clipped = (ratio.clamp(1.0 - clip, 1.0 + clip)? * adv)?;
+    unclipped.minimum(&clipped)?.mean_all()?.neg()
+}
+
+/// What one rollout's training did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PpoStats {
+    pub policy_loss: f32,
+    pub value_loss: f32,
+    pub approx_kl: f32,
+    pub clip_fraction: f32,
+    pub epochs_run: usize,
+    pub minibatch_updates: u64,
+    pub lr: f64,
+    pub clip: f64,
+}
+
+/// The PPO learner state.
+pub struct Ppo {
+    pub cfg: PpoConfig,
+    obs_dim: usize,
+    act_dim: usize,
+    pub policy: Owned<GaussianPolicy>,
+    pub value: Owned<ValueNet>,
+    pi_opt: Adam,
+    v_opt: Adam,
+    pub norm: RunningNorm,
+    rng: ChaCha8Rng,
+    /// Env steps trained on.
+    pub env_steps: u64,
+    /// Minibatch updates made.
+    pub updates: u64,
+}
+
+impl Ppo {
+    pub fn new(cfg: PpoConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        let h = cfg.hidden.clone();
+        let policy = Owned::build(&mut rng, |vb| GaussianPolicy::new(vb, obs_dim, &h, act_dim))?;
+        let value = Owned::build(&mut rng, |vb| ValueNet::new(vb, obs_dim, &h))?;
+        let pi_opt = Adam::for_varmap(&policy.varmap, cfg.lr)?;
+        let v_opt = Adam::for_varmap(&value.varmap, cfg.lr)?;
+        let norm = RunningNorm::new(obs_dim, cfg.obs_clip);
+        Ok(Self {
+            cfg,
+            obs_dim,
+            act_dim,
+            policy,
+            value,
+            pi_opt,
+            v_opt,
+            norm,
+            rng,
+            env_steps: 0,
+            updates: 0,
+        })
+    }
+
+    /// Normalised observations of `t` as a `[steps + 1, obs_dim]` tensor.
+    fn normalised(&self, t: &Trajectory) -> Result<Tensor> {
+        let mut obs = t.obs.clone();
+        for row in obs.chunks_exact_mut(self.obs_dim) {
+            self.norm.apply(row);
+        }
+        Tensor::from_vec(obs, (t.steps() + 1, self.obs_dim), &Device::Cpu)
+    }
+
+    /// Train on one rollout. `total_steps` is the run's budget (for the linear decays).
+    pub fn train(
+        &mut self,
+        rollout: &[Trajectory],
+        reward: impl Fn(&StepRewards) -> f32,
+        total_steps: u64,
+    ) -> Result<PpoStats> {
+        // 1. Targets: values, GAE, old log-probabilities, all with the acting weights.
+        let (mut obs, mut act, mut old_logp, mut adv, mut ret) =
+            (vec![], vec![], vec![], vec![], vec![]);
+        for t in rollout {
+            let o = self.normalised(t)?;
+            let v = self
+                .value
+                .net
+                .forward(&o)?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            let r: Vec<f32> = t.rewards.iter().map(&reward).collect();
+            let (a, g) = gae(
+                &r,
+                &v,
+                t.outcome.terminated,
+                self.cfg.gamma,
+                self.cfg.gae_lambda,
+            );
+            let steps = t.steps();
+            let o_steps = o.narrow(0, 0, steps)?;
+            let acts = Tensor::from_slice(&t.actions, (steps, self.act_dim), &Device::Cpu)?;
+            old_logp.extend(
+                self.policy
+                    .net
+                    .log_prob(&o_steps, &acts)?
+                    .flatten_all()?
+                    .to_vec1::<f32>()?,
+            );
+            obs.extend(o_steps.flatten_all()?.to_vec1::<f32>()?);
+            act.extend_from_slice(&t.actions);
+            adv.extend(a);
+            ret.extend(g);
+        }
+        let n = adv.len();
+        let dev = Device::Cpu;
+        let obs = Tensor::from_vec(obs, (n, self.obs_dim), &dev)?;
+        let act = Tensor::from_vec(act, (n, self.act_dim), &dev)?;
+        let old_logp = Tensor::from_vec(old_logp, (n, 1), &dev)?;
+        let adv = Tensor::from_vec(adv, (n, 1), &dev)?;
+        let ret = Tensor::from_vec(ret, (n, 1), &dev)?;
+
+        // 2. Schedules: learning rate and clip decay linearly to 0 over the run.
+        let frac = 1.0 - (self.env_steps as f64 / total_steps.max(1) as f64).min(1.0);
+        let (lr, clip) = (self.cfg.lr * frac, self.cfg.clip * frac);
+        self.pi_opt.lr = lr;
+        self.v_opt.lr = lr;
+
+        // 3. Epochs of shuffled minibatches, stopping early on a large KL.
+        let mut stats = PpoStats {
+            lr,
+            clip,
+            ..PpoStats::default()
+        };
+        let mut order: Vec<u32> = (0..n as u32).collect();
+        'epochs: for _ in 0..self.cfg.epochs {
+            order.shuffle(&mut self.rng);
+            stats.epochs_run += 1;
+            for chunk in order.chunks(self.cfg.minibatch) {
+                let idx = Tensor::from_slice(chunk, chunk.len(), &dev)?;
+                let (o, a) = (obs.index_select(&idx, 0)?, act.index_select(&idx, 0)?);
+                let (lp_old, r) = (old_logp.index_select(&idx, 0)?, ret.index_select(&idx, 0)?);
+                let mb_adv = adv.index_select(&idx, 0)?;
+                // NOTE: advantages normalised per minibatch.
+                let mean = mb_adv.mean_all()?;
+                let std = mb_adv.broadcast_sub(&mean)?.sqr()?.mean_all()?.sqrt()?;
+                let mb_adv = mb_adv.broadcast_sub(&mean)?.broadcast_div(&(std + 1e-8)?)?;
+
+                let lp = self.policy.net.log_prob(&o, &a)?;
+                let log_ratio = (&lp - &lp_old)?;
+                // Approximate KL (Schulman's k3): mean((r - 1) - log r).
+                let kl = ((log_ratio.exp()? - 1.0)? - &log_ratio)?
+                    .mean_all()?
+                    .to_scalar::<f32>()?;
+                let pi_loss = clipped_policy_loss(&lp, &lp_old, &mb_adv, clip)?;
+                let v_loss = (self.value.net.forward(&o)? - &r)?.sqr()?.mean_all()?;
+                let mut g = pi_loss.backward()?;
+                clip_grad_norm(&self.pi_opt.vars, &mut g, self.cfg.max_grad_norm)?;
+                self.pi_opt.step(&g)?;
+                let mut g = (&v_loss * self.cfg.value_coef)?.backward()?;
+                clip_grad_norm(&self.v_opt.vars, &mut g, self.cfg.max_grad_norm)?;
+                self.v_opt.step(&g)?;
+                self.updates += 1;
+                stats.minibatch_updates += 1;
+                stats.policy_loss = pi_loss.to_scalar::<f32>()?;
+                stats.value_loss = v_loss.to_scalar::<f32>()?;
+                stats.approx_kl = kl;
+                let outside = log_ratio.exp()?.affine(1.0, -1.0)?.abs()?.gt(clip)?;
+                stats.clip_fraction = outside
+                    .to_dtype(candle_core::DType::F32)?
+                    .mean_all()?
+                    .to_scalar::<f32>()?;
+                if (kl as f64) > 1.5 * self.cfg.target_kl {
+                    break 'epochs;
+                }
+            }
+        }
+
+        // 4. The normaliser learns this rollout's observations for the next weights.
+        for t in rollout {
+            self.norm.update(&t.obs[..t.steps() * self.obs_dim]);
+        }
+        self.env_steps += n as u64;
+        Ok(stats)
+    }
+
+    /// A sampled action for one raw observation (normalised here, as actors do).
+    pub fn act_stochastic(&self, obs: &[f32], noise: &[f32]) -> Result<Vec<f32>> {
+        let mut o = obs.to_vec();
+        self.norm.apply(&mut o);
+        let o = Tensor::from_vec(o, (1, self.obs_dim), &Device::Cpu)?;
+        let eps = Tensor::from_slice(noise, (1, self.act_dim), &Device::Cpu)?;
+        self.policy
+            .net
+            .sample(&o, &eps)?
+            .0
+            .squeeze(0)?
+            .to_vec1::<f32>()
+    }
+
+    /// The deterministic action for one raw observation.
+    pub fn act_deterministic(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        let mut o = obs.to_vec();
+        self.norm.apply(&mut o);
+        let o = Tensor::from_vec(o, (1, self.obs_dim), &Device::Cpu)?;
+        self.policy
+            .net
+            .deterministic(&o)?
+            .squeeze(0)?
+            .to_vec1::<f32>()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gae_matches_the_reference() {
+        // Reference (Python, CleanRL's loop for one episode cut by the time limit):
+        //   r, v, gamma, lam = [1.0, 0.0, 2.0], [0.5, 0.4, 0.3, 0.2], 0.9, 0.8
+        //   adv, last = [0.0] * 3, 0.0
+        //   for t in reversed(range(3)):
+        //       delta = r[t] + gamma * v[t + 1] - v[t]
+        //       last = delta + gamma * lam * last; adv[t] = last
+        //   print(adv)  # [1.740992, 1.2236, 1.88]
+        let (adv, ret) = gae(&[1.0, 0.0, 2.0], &[0.5, 0.4, 0.3, 0.2], false, 0.9, 0.8);
+        let want = [1.740_992, 1.2236, 1.88];
+        for (a, w) in adv.iter().zip(want) {
+            assert!((a - w).abs() < 1e-5, "{adv:?}");
+        }
+        assert!((ret[0] - (1.740_992 + 0.5)).abs() < 1e-5);
+        // A terminal state does not bootstrap: the last delta is 2.0 - 0.3 = 1.7.
+        let (adv, _) = gae(&[1.0, 0.0, 2.0], &[0.5, 0.4, 0.3, 0.2], true, 0.9, 0.8);
+        assert!((adv[2] - 1.7).abs() < 1e-6, "{adv:?}");
+    }
+
+    #[test]
+    fn clipped_loss_matches_the_reference() {
+        // Reference (Python):
+        //   lp_new, lp_old, adv, eps = [0.0, -1.0, 0.5], [-0.5, -0.5, 0.5], [1.0, 2.0, -1.0], 0.2
+        //   r = [math.exp(a - b) for a, b in zip(lp_new, lp_old)]   # [1.6487, 0.6065, 1.0]
+        //   -sum(min(ri * A, max(1 - eps, min(1 + eps, ri)) * A)
+        //        for ri, A in zip(r, adv)) / 3                       # -0.4710204
+        let t = |v: &[f32]| Tensor::from_slice(v, (v.len(), 1), &Device::Cpu).unwrap();
+        let loss = clipped_policy_loss(
+            &t(&[0.0, -1.0, 0.5]),
+            &t(&[-0.5, -0.5, 0.5]),
+            &t(&[1.0, 2.0, -1.0]),
+            0.2,
+        )
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+        assert!((loss - (-0.471_02)).abs() < 1e-4, "{loss}");
+    }
+}
