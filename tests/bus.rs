@@ -27,6 +27,8 @@ fn weights(version: u64) -> Weights {
         obs_mean: vec![0.0, 0.0],
         obs_var: vec![1.0, 1.0],
         obs_clip: 10.0,
+        random_actions: false,
+        episodes_per_actor: 0,
     }
 }
 

@@ -4,6 +4,8 @@
 pub mod config;
 pub mod kinematics;
 pub mod point;
+pub mod policy;
+pub mod runner;
 pub mod scene;
 pub mod world;
 

@@ -32,8 +32,18 @@ pub fn run_episode(
     controller: &mut Controller,
     seed: u64,
 ) -> Result<Trajectory, WorldError> {
-    let obs = world.reset(seed)?;
     controller.reset(seed);
+    run_episode_with(world, seed, |w, _| controller.act(w))
+}
+
+/// Reset `world` with `seed` and run a whole episode with `act` (the world and its newest
+/// observation to an action).
+pub fn run_episode_with(
+    world: &mut FeedingWorld,
+    seed: u64,
+    mut act: impl FnMut(&FeedingWorld, &[f32]) -> Result<[f32; ACT_DIM], WorldError>,
+) -> Result<Trajectory, WorldError> {
+    let obs = world.reset(seed)?;
     let steps = world.config().episode_steps as usize;
     let n_food = world.config().food_count;
     let mut replay = Replay {
@@ -61,7 +71,8 @@ pub fn run_episode(
     };
     t.obs.extend_from_slice(&obs);
     loop {
-        let action = controller.act(world)?;
+        let last = t.obs.len() - OBS_DIM;
+        let action = act(world, &t.obs[last..])?;
         let step = world.step(&action)?;
         snapshot(world, &mut replay)?;
         t.obs.extend_from_slice(&step.obs);

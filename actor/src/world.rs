@@ -54,6 +54,8 @@ pub enum WorldError {
     ResetFailed { seed: u64, tries: u32 },
     #[error(transparent)]
     Config(#[from] ConfigError),
+    #[error("the policy failed: {0}")]
+    Policy(String),
 }
 
 /// Food counts: this step's and the episode's.

@@ -34,6 +34,11 @@ pub struct Weights {
     pub obs_mean: Vec<f32>,
     pub obs_var: Vec<f32>,
     pub obs_clip: f32,
+    /// Act uniformly at random instead (SAC's first steps).
+    pub random_actions: bool,
+    /// Episodes each actor may run with this version before it waits for the next (0: no
+    /// limit). The learner's flow control: actors never run far ahead of training.
+    pub episodes_per_actor: u32,
 }
 
 /// A trajectory from an actor, tagged with the policy version that acted.
@@ -188,6 +193,8 @@ mod tests {
             obs_mean: vec![0.0, 1.0],
             obs_var: vec![1.0, 2.0],
             obs_clip: 10.0,
+            random_actions: false,
+            episodes_per_actor: 0,
         }
     }
 

@@ -4,3 +4,4 @@
 pub mod optim;
 pub mod ppo;
 pub mod sac;
+pub mod service;

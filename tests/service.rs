@@ -1,0 +1,168 @@
+//! A learner and actors as services over an in-process Zenoh router on loopback.
+
+use std::time::Duration;
+
+use pbrl_actor::runner::{self, ActorConfig, Task};
+use pbrl_actor::WorldConfig;
+use pbrl_common::bus::WeightsClient;
+use pbrl_common::connect::{free_local_port, ConnectArgs};
+use pbrl_common::Keys;
+use pbrl_learner::ppo::PpoConfig;
+use pbrl_learner::sac::SacConfig;
+use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use tokio::sync::oneshot;
+
+fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
+    let (obs_dim, act_dim) = Task::Point.dims();
+    LearnerConfig {
+        run: run.into(),
+        algo,
+        reward: RewardSource::True,
+        total_steps: total,
+        obs_dim,
+        act_dim,
+        sac: SacConfig {
+            hidden: vec![32, 32],
+            batch: 32,
+            random_steps: 300,
+            update_every: 2,
+            ..SacConfig::default()
+        },
+        ppo: PpoConfig {
+            hidden: vec![32, 32],
+            rollout_steps: 300,
+            minibatch: 64,
+            ..PpoConfig::default()
+        },
+        publish_every: 20,
+        log_every: 1000,
+        actors: 2,
+        episode_steps: pbrl_actor::runner::POINT_HORIZON,
+        out: None,
+    }
+}
+
+fn actor(
+    endpoint: &str,
+    run: &str,
+    id: u32,
+) -> (
+    oneshot::Sender<()>,
+    tokio::task::JoinHandle<anyhow::Result<()>>,
+) {
+    let (tx, rx) = oneshot::channel::<()>();
+    let endpoint = endpoint.to_string();
+    let cfg = ActorConfig {
+        id,
+        run: run.into(),
+        task: Task::Point,
+        world: WorldConfig::default(),
+        seed: 1,
+    };
+    let handle = tokio::spawn(async move {
+        let session = ConnectArgs::connecting_to(&endpoint).open().await?;
+        runner::run(cfg, session, async {
+            let _ = rx.await;
+        })
+        .await
+    });
+    (tx, handle)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_stop_it() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let run = "service-test";
+    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let learner = tokio::spawn(service::run(
+        learner_config(run, Algo::Sac, 6_000),
+        learner_session,
+        std::future::pending(),
+    ));
+
+    let (_stop_a, actor_a) = actor(&endpoint, run, 0);
+    let (stop_b, actor_b) = actor(&endpoint, run, 1);
+
+    // Wait until the learner has moved past its first versions, then add a late actor.
+    let watcher = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
+        .await
+        .unwrap();
+    let current = loop {
+        let w = tokio::time::timeout(Duration::from_secs(60), weights.next())
+            .await
+            .unwrap()
+            .unwrap();
+        if w.version >= 4 {
+            break w.version;
+        }
+    };
+    let (_stop_c, actor_c) = actor(&endpoint, run, 2);
+    // Kill actor 1 outright; the learner must go on with the others.
+    actor_b.abort();
+    drop(stop_b);
+
+    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert!(summary.env_steps >= 6_000);
+    assert_eq!(
+        summary.updates,
+        (summary.env_steps / 2).min(summary.updates),
+        "UTD is kept"
+    );
+    assert!(summary.policy_version > current, "weights kept coming");
+    assert!(summary.episodes_by_actor.get(&0).copied().unwrap_or(0) > 0);
+    let late = summary
+        .first_version_by_actor
+        .get(&2)
+        .copied()
+        .expect("the late actor sent episodes");
+    assert!(
+        late >= current,
+        "the late actor started from version {late}, the learner was at {current}"
+    );
+    assert_eq!(summary.dropped_messages, 0);
+    // The learner's stop ends the remaining actors.
+    for a in [actor_a, actor_c] {
+        tokio::time::timeout(Duration::from_secs(30), a)
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn ppo_trains_only_on_the_current_version() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let run = "ppo-test";
+    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let learner = tokio::spawn(service::run(
+        learner_config(run, Algo::Ppo, 3_000),
+        learner_session,
+        std::future::pending(),
+    ));
+    let (_a, actor_a) = actor(&endpoint, run, 0);
+    let (_b, actor_b) = actor(&endpoint, run, 1);
+    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert!(summary.env_steps >= 3_000);
+    // One version per rollout of 300 steps (10 episodes), counted only from fresh data.
+    assert!(summary.policy_version >= 9, "{summary:?}");
+    assert!(summary.updates > 0);
+    for a in [actor_a, actor_b] {
+        tokio::time::timeout(Duration::from_secs(30), a)
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+    }
+}
