@@ -1,5 +1,7 @@
 //! `pbrl`: the command line. It parses arguments, sets up logging and calls the crates.
 
+mod train;
+
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
@@ -19,6 +21,12 @@ enum Command {
     /// The feeding world: demo, bench, record, render.
     #[command(subcommand)]
     Env(pbrl_actor::cli::EnvCommand),
+    /// Train in one process: an in-process Zenoh router, the learner and N actors.
+    Train(train::TrainArgs),
+    /// Run the learner alone, joining a Zenoh network (--connect or --listen).
+    Learner(train::LearnerArgs),
+    /// Run one actor alone, joining a Zenoh network.
+    Actor(train::ActorArgs),
 }
 
 fn main() -> Result<()> {
@@ -28,7 +36,21 @@ fn main() -> Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    match Cli::parse().command {
-        Command::Env(cmd) => pbrl_actor::cli::run(cmd),
+    let command = Cli::parse().command;
+    if let Command::Env(cmd) = command {
+        return pbrl_actor::cli::run(cmd);
     }
+    // NOTE: zenoh needs tokio's multi-thread scheduler; two workers match the 2 cores.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        match command {
+            Command::Train(a) => train::train(a).await,
+            Command::Learner(a) => train::learner(a).await,
+            Command::Actor(a) => train::actor(a).await,
+            Command::Env(_) => unreachable!("handled above"),
+        }
+    })
 }

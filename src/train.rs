@@ -1,0 +1,244 @@
+//! `pbrl train`, `pbrl learner`, `pbrl actor`: the arguments and the wiring of the services.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use pbrl_actor::cli::WorldArgs;
+use pbrl_actor::runner::{self, ActorConfig, Task, POINT_HORIZON};
+use pbrl_common::connect::{free_local_port, ConnectArgs};
+use pbrl_learner::ppo::PpoConfig;
+use pbrl_learner::sac::SacConfig;
+use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+
+/// What to learn and how long: shared by `train` and `learner`.
+#[derive(Args, Clone, Debug)]
+pub struct LearnArgs {
+    /// RL backbone.
+    #[arg(long, value_enum, default_value = "sac")]
+    pub algo: Algo,
+    /// Reward to train on: the ground truth or the sketchy task reward alone.
+    #[arg(long, value_enum, default_value = "true")]
+    pub reward: RewardSource,
+    /// Env steps of the run.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub steps: u64,
+    /// Seed of the run.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Task: the feeding world, or the point task made for tests.
+    #[arg(long, value_enum, default_value = "feeding")]
+    pub task: Task,
+    /// Network sizes: 256x256 (SAC, batch 256) and 512x512 (PPO), or the authors' 512x512
+    /// everywhere with SAC batch 512 (`paper`).
+    #[arg(long, default_value = "default", value_parser = ["default", "paper"])]
+    pub preset: String,
+    /// Env steps between rows of the learning curve.
+    #[arg(long, default_value_t = 10_000)]
+    pub log_every: u64,
+    /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
+    #[arg(long)]
+    pub run: Option<String>,
+    /// Run folder (config.json, curve.csv); default `runs/<run>`.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl LearnArgs {
+    pub fn run_id(&self) -> String {
+        self.run.clone().unwrap_or_else(|| {
+            format!("{:?}-{:?}-s{}", self.algo, self.reward, self.seed).to_lowercase()
+        })
+    }
+
+    fn learner_config(&self, actors: u32, episode_steps: u32) -> LearnerConfig {
+        let (obs_dim, act_dim) = self.task.dims();
+        let mut sac = SacConfig {
+            seed: self.seed,
+            ..SacConfig::default()
+        };
+        let mut ppo = PpoConfig {
+            seed: self.seed,
+            ..PpoConfig::default()
+        };
+        if self.preset == "paper" {
+            sac.hidden = vec![512, 512];
+            sac.batch = 512;
+            ppo.hidden = vec![512, 512];
+        }
+        if self.task == Task::Point {
+            ppo.rollout_steps = 32 * POINT_HORIZON as usize;
+        }
+        LearnerConfig {
+            run: self.run_id(),
+            algo: self.algo,
+            reward: self.reward,
+            total_steps: self.steps,
+            obs_dim,
+            act_dim,
+            sac,
+            ppo,
+            publish_every: 50,
+            log_every: self.log_every,
+            actors,
+            episode_steps,
+            out: Some(
+                self.out
+                    .clone()
+                    .unwrap_or_else(|| PathBuf::from("runs").join(self.run_id())),
+            ),
+        }
+    }
+}
+
+/// `pbrl train`: router, learner and actors in one process.
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    #[command(flatten)]
+    pub learn: LearnArgs,
+    /// Actor tasks, each with its own Zenoh session.
+    #[arg(long, default_value_t = 2)]
+    pub actors: u32,
+    #[command(flatten)]
+    pub world: WorldArgs,
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+}
+
+/// `pbrl learner`: the learner alone, joining a Zenoh network.
+#[derive(Args, Debug)]
+pub struct LearnerArgs {
+    #[command(flatten)]
+    pub learn: LearnArgs,
+    /// Actors that will feed this learner (for flow control).
+    #[arg(long, default_value_t = 2)]
+    pub actors: u32,
+    #[command(flatten)]
+    pub world: WorldArgs,
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+}
+
+/// `pbrl actor`: one actor, joining a Zenoh network.
+#[derive(Args, Debug)]
+pub struct ActorArgs {
+    /// This actor's number (distinct per actor of a run).
+    #[arg(long, default_value_t = 0)]
+    pub id: u32,
+    /// Run id, as the learner's.
+    #[arg(long)]
+    pub run: String,
+    #[arg(long, value_enum, default_value = "feeding")]
+    pub task: Task,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub world: WorldArgs,
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+}
+
+fn episode_steps(task: Task, world: &pbrl_actor::WorldConfig) -> u32 {
+    match task {
+        Task::Feeding => world.episode_steps,
+        Task::Point => POINT_HORIZON,
+    }
+}
+
+async fn ctrl_c() {
+    // NOTE: if the signal handler cannot be installed, run until done instead.
+    if tokio::signal::ctrl_c().await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+pub async fn train(args: TrainArgs) -> Result<()> {
+    let world = args.world.config()?;
+    let cfg = args
+        .learn
+        .learner_config(args.actors, episode_steps(args.learn.task, &world));
+    // The embedded router on loopback, unless told to join an existing network.
+    let (endpoint, _router) = if args.connect.connect.is_empty() {
+        let listen = match args.connect.listen.first() {
+            Some(e) => e.clone(),
+            None => format!("tcp/127.0.0.1:{}", free_local_port()?),
+        };
+        let router = ConnectArgs {
+            multicast: args.connect.multicast,
+            ..ConnectArgs::router_on(&listen)
+        }
+        .open()
+        .await
+        .context("starting the in-process router")?;
+        (listen, Some(router))
+    } else {
+        (args.connect.connect[0].clone(), None)
+    };
+    tracing::info!(%endpoint, run = %cfg.run, actors = args.actors, "train");
+    let mut actors = Vec::new();
+    let (tx, rx) = tokio::sync::watch::channel(false);
+    for id in 0..args.actors {
+        let session = ConnectArgs::connecting_to(&endpoint).open().await?;
+        let acfg = ActorConfig {
+            id,
+            run: cfg.run.clone(),
+            task: args.learn.task,
+            world: world.clone(),
+            seed: args.learn.seed,
+        };
+        let mut rx = rx.clone();
+        actors.push(tokio::spawn(runner::run(acfg, session, async move {
+            let _ = rx.wait_for(|stop| *stop).await;
+        })));
+    }
+    let session = ConnectArgs::connecting_to(&endpoint).open().await?;
+    let out = cfg.out.clone();
+    let summary = service::run(cfg, session, ctrl_c()).await?;
+    let _ = tx.send(true);
+    for a in actors {
+        match a.await {
+            Ok(Err(e)) => tracing::warn!(error = %e, "an actor failed"),
+            Err(e) => tracing::warn!(error = %e, "an actor task died"),
+            Ok(Ok(())) => {}
+        }
+    }
+    if let Some(last) = summary.rows.last() {
+        println!(
+            "done: {} env steps, {} updates, version {}; last window: return {:.1}, success {:.0}%, preference return {:.1}; curve in {}",
+            summary.env_steps,
+            summary.updates,
+            summary.policy_version,
+            last.return_truth,
+            100.0 * last.success_rate,
+            last.return_human,
+            out.map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
+        );
+    }
+    Ok(())
+}
+
+pub async fn learner(args: LearnerArgs) -> Result<()> {
+    let world = args.world.config()?;
+    let cfg = args
+        .learn
+        .learner_config(args.actors, episode_steps(args.learn.task, &world));
+    let session = args.connect.open().await?;
+    let summary = service::run(cfg, session, ctrl_c()).await?;
+    println!(
+        "done: {} env steps, {} updates, version {}",
+        summary.env_steps, summary.updates, summary.policy_version
+    );
+    Ok(())
+}
+
+pub async fn actor(args: ActorArgs) -> Result<()> {
+    let cfg = ActorConfig {
+        id: args.id,
+        run: args.run,
+        task: args.task,
+        world: args.world.config()?,
+        seed: args.seed,
+    };
+    let session = args.connect.open().await?;
+    runner::run(cfg, session, ctrl_c()).await
+}
