@@ -27,6 +27,9 @@ enum Command {
     Learner(train::LearnerArgs),
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
+    /// Benchmarks: `pbrl bench learner`.
+    #[command(subcommand)]
+    Bench(train::BenchCommand),
 }
 
 fn main() -> Result<()> {
@@ -37,8 +40,10 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let command = Cli::parse().command;
-    if let Command::Env(cmd) = command {
-        return pbrl_actor::cli::run(cmd);
+    match command {
+        Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
+        Command::Bench(cmd) => return train::bench(cmd),
+        _ => {}
     }
     // NOTE: zenoh needs tokio's multi-thread scheduler; two workers match the 2 cores.
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -50,7 +55,7 @@ fn main() -> Result<()> {
             Command::Train(a) => train::train(a).await,
             Command::Learner(a) => train::learner(a).await,
             Command::Actor(a) => train::actor(a).await,
-            Command::Env(_) => unreachable!("handled above"),
+            Command::Env(_) | Command::Bench(_) => unreachable!("handled above"),
         }
     })
 }

@@ -242,3 +242,37 @@ pub async fn actor(args: ActorArgs) -> Result<()> {
     let session = args.connect.open().await?;
     runner::run(cfg, session, ctrl_c()).await
 }
+
+#[derive(clap::Subcommand, Debug)]
+pub enum BenchCommand {
+    /// SAC gradient steps and PPO minibatch updates per second (obs 25, action 7), at
+    /// 256x256 / batch 256 and 512x512 / batch 512, on 1 and 2 threads.
+    Learner {
+        /// Gradient steps per timing.
+        #[arg(long, default_value_t = 30)]
+        steps: usize,
+    },
+}
+
+pub fn bench(cmd: BenchCommand) -> Result<()> {
+    let BenchCommand::Learner { steps } = cmd;
+    println!(
+        "{:<8} {:>10} {:>8} {:>12} {:>12}",
+        "threads", "hidden", "batch", "SAC ms/step", "PPO ms/mb"
+    );
+    for threads in [1, 2] {
+        // NOTE: candle reads RAYON_NUM_THREADS at every matmul.
+        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+        for (hidden, batch) in [(256, 256), (512, 512)] {
+            let sac = pbrl_learner::bench::sac_step_ms(hidden, batch, steps, 3)?;
+            let ppo = pbrl_learner::bench::ppo_update_ms(hidden, batch, 4000)?;
+            println!(
+                "{threads:<8} {:>10} {batch:>8} {sac:>12.2} {ppo:>12.2}   ({:.0} SAC steps/s, {:.0} PPO updates/s)",
+                format!("{hidden}x{hidden}"),
+                1e3 / sac,
+                1e3 / ppo
+            );
+        }
+    }
+    Ok(())
+}
