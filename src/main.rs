@@ -24,7 +24,7 @@ enum Command {
     /// Train in one process: an in-process Zenoh router, the learner and N actors.
     Train(train::TrainArgs),
     /// Run the learner alone, joining a Zenoh network (--connect or --listen).
-    Learner(train::LearnerArgs),
+    Learner(train::TrainArgs),
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
     /// Benchmarks: `pbrl bench learner`.

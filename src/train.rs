@@ -91,26 +91,14 @@ impl LearnArgs {
     }
 }
 
-/// `pbrl train`: router, learner and actors in one process.
+/// `pbrl train` (router, learner and actors in one process) and `pbrl learner` (the
+/// learner alone, joining a Zenoh network).
 #[derive(Args, Debug)]
 pub struct TrainArgs {
     #[command(flatten)]
     pub learn: LearnArgs,
-    /// Actor tasks, each with its own Zenoh session.
-    #[arg(long, default_value_t = 2)]
-    pub actors: u32,
-    #[command(flatten)]
-    pub world: WorldArgs,
-    #[command(flatten)]
-    pub connect: ConnectArgs,
-}
-
-/// `pbrl learner`: the learner alone, joining a Zenoh network.
-#[derive(Args, Debug)]
-pub struct LearnerArgs {
-    #[command(flatten)]
-    pub learn: LearnArgs,
-    /// Actors that will feed this learner (for flow control).
+    /// Actors: `train` starts this many tasks, each with its own Zenoh session; for
+    /// `learner` it is how many will join (the learner's flow control counts on it).
     #[arg(long, default_value_t = 2)]
     pub actors: u32,
     #[command(flatten)]
@@ -217,7 +205,7 @@ pub async fn train(args: TrainArgs) -> Result<()> {
     Ok(())
 }
 
-pub async fn learner(args: LearnerArgs) -> Result<()> {
+pub async fn learner(args: TrainArgs) -> Result<()> {
     let world = args.world.config()?;
     let cfg = args
         .learn

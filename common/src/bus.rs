@@ -118,12 +118,7 @@ impl WeightsServer {
 
     /// Whether any subscriber for weights is known (declarations travel asynchronously).
     pub async fn has_subscribers(&self) -> Result<bool> {
-        Ok(self
-            .publisher
-            .matching_status()
-            .await
-            .map_err(zerr("reading the weights publisher's matching status"))?
-            .matching())
+        has_subscribers(&self.publisher).await
     }
 }
 
@@ -251,12 +246,7 @@ impl TrajectoryPublisher {
 
     /// Whether the learner's subscription is known yet.
     pub async fn has_subscribers(&self) -> Result<bool> {
-        Ok(self
-            .publisher
-            .matching_status()
-            .await
-            .map_err(zerr("reading the trajectory publisher's matching status"))?
-            .matching())
+        has_subscribers(&self.publisher).await
     }
 }
 
@@ -296,6 +286,16 @@ impl TrajectorySubscriber {
             }
         }
     }
+}
+
+async fn has_subscribers(publisher: &Publisher<'static>) -> Result<bool> {
+    let status = publisher.matching_status().await.map_err(|e| {
+        anyhow!(
+            "reading the matching status of publisher {}: {e}",
+            publisher.key_expr()
+        )
+    })?;
+    Ok(status.matching())
 }
 
 /// Wait until `ready` says yes, polling every few milliseconds, for at most `limit`.

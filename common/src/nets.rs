@@ -2,7 +2,7 @@
 //! Gaussian policy, the value network and the twin Q critics. Each trainable network owns
 //! its own `VarMap`; weights travel as named tensors ([`crate::wire::Weights`]).
 
-use candle_core::{DType, Device, Result, Tensor, D};
+use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Linear, Module, VarBuilder, VarMap};
 use rand::Rng;
 
@@ -49,26 +49,33 @@ fn sizes(input: usize, hidden: &[usize], output: usize) -> Vec<usize> {
         .collect()
 }
 
-/// Re-initialise every variable of `varmap` from `rng`, in name order, as PyTorch's
-/// `nn.Linear` does: weights and biases from U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
-/// (candle's own random generator cannot be seeded.)
-pub fn init_seeded(varmap: &VarMap, rng: &mut impl Rng) -> Result<()> {
+/// Every variable of `varmap` with its name, in name order (a `VarMap` iterates in hash
+/// order, which differs from run to run).
+pub fn named_vars(varmap: &VarMap) -> Result<Vec<(String, Var)>> {
     let data = varmap
         .data()
         .lock()
         .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
-    let mut names: Vec<&String> = data.keys().collect();
-    names.sort();
-    for name in names {
-        let var = &data[name];
-        let fan_in = match name.strip_suffix(".bias") {
-            Some(stem) => data
-                .get(&format!("{stem}.weight"))
-                .map(|w| w.dims()[1])
-                .unwrap_or(1),
-            None => var.dims().last().copied().unwrap_or(1),
-        };
-        let b = 1.0 / (fan_in as f32).sqrt();
+    let mut vars: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(vars)
+}
+
+/// Re-initialise every variable of `varmap` from `rng`, in name order, as PyTorch's
+/// `nn.Linear` does: weights and biases from U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
+/// (candle's own random generator cannot be seeded.)
+pub fn init_seeded(varmap: &VarMap, rng: &mut impl Rng) -> Result<()> {
+    let vars = named_vars(varmap)?;
+    let fan_in_of = |name: &str, var: &Var| match name.strip_suffix(".bias") {
+        Some(stem) => vars
+            .iter()
+            .find(|(n, _)| *n == format!("{stem}.weight"))
+            .map(|(_, w)| w.dims()[1])
+            .unwrap_or(1),
+        None => var.dims().last().copied().unwrap_or(1),
+    };
+    for (name, var) in &vars {
+        let b = 1.0 / (fan_in_of(name, var) as f32).sqrt();
         let vals: Vec<f32> = (0..var.elem_count())
             .map(|_| rng.random_range(-b..b))
             .collect();
@@ -79,18 +86,12 @@ pub fn init_seeded(varmap: &VarMap, rng: &mut impl Rng) -> Result<()> {
 
 /// Every variable of `varmap` as named tensors, in name order.
 pub fn export(varmap: &VarMap) -> Result<Vec<wire::Tensor>> {
-    let data = varmap
-        .data()
-        .lock()
-        .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
-    let mut names: Vec<&String> = data.keys().collect();
-    names.sort();
-    names
+    named_vars(varmap)?
         .into_iter()
-        .map(|name| {
-            let t = data[name].as_tensor();
+        .map(|(name, var)| {
+            let t = var.as_tensor();
             Ok(wire::Tensor {
-                name: name.clone(),
+                name,
                 shape: t.dims().to_vec(),
                 data: t.flatten_all()?.to_vec1::<f32>()?,
             })

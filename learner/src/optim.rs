@@ -39,15 +39,7 @@ impl Adam {
 
     /// Adam over every variable of `varmap`, in name order.
     pub fn for_varmap(varmap: &candle_nn::VarMap, lr: f64) -> Result<Self> {
-        let data = varmap
-            .data()
-            .lock()
-            .map_err(|_| candle_core::Error::Msg("a VarMap lock was poisoned".into()))?;
-        let mut vars: Vec<(String, Var)> =
-            data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-        vars.sort_by(|a, b| a.0.cmp(&b.0));
-        drop(data);
-        Self::new(vars, lr)
+        Self::new(pbrl_common::nets::named_vars(varmap)?, lr)
     }
 
     pub fn step(&mut self, grads: &GradStore) -> Result<()> {
