@@ -141,12 +141,13 @@ async fn ppo_trains_only_on_the_current_version() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
     let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
     let run = "ppo-test";
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = LearnerConfig {
+        out: Some(dir.path().to_path_buf()),
+        ..learner_config(run, Algo::Ppo, 3_000)
+    };
     let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let learner = tokio::spawn(service::run(
-        learner_config(run, Algo::Ppo, 3_000),
-        learner_session,
-        std::future::pending(),
-    ));
+    let learner = tokio::spawn(service::run(cfg, learner_session, std::future::pending()));
     let (_a, actor_a) = actor(&endpoint, run, 0);
     let (_b, actor_b) = actor(&endpoint, run, 1);
     let summary = tokio::time::timeout(Duration::from_secs(120), learner)
@@ -158,6 +159,26 @@ async fn ppo_trains_only_on_the_current_version() {
     // One version per rollout of 300 steps (10 episodes), counted only from fresh data.
     assert!(summary.policy_version >= 9, "{summary:?}");
     assert!(summary.updates > 0);
+    // The run folder: config, curve with a row per 1000 env steps, and the networks.
+    let curve = std::fs::read_to_string(dir.path().join("curve.csv")).unwrap();
+    assert_eq!(curve.lines().count(), 1 + summary.rows.len());
+    assert!(curve.starts_with("env_steps,episodes,return_truth,success_rate,return_human"));
+    let manifest = std::fs::read_to_string(dir.path().join("checkpoint/checkpoint.json")).unwrap();
+    assert!(
+        manifest.contains(&format!("\"version\":{}", summary.policy_version)),
+        "{manifest}"
+    );
+    let (obs_dim, act_dim) = Task::Point.dims();
+    let mut rng = rand::rngs::ThreadRng::default();
+    let mut policy = pbrl_common::nets::Owned::build(&mut rng, |vb| {
+        pbrl_common::nets::GaussianPolicy::new(vb, obs_dim, &[32, 32], act_dim)
+    })
+    .unwrap();
+    policy
+        .varmap
+        .load(dir.path().join("checkpoint/policy.safetensors"))
+        .unwrap();
+    assert!(dir.path().join("config.json").exists());
     for a in [actor_a, actor_b] {
         tokio::time::timeout(Duration::from_secs(30), a)
             .await

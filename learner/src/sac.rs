@@ -227,6 +227,16 @@ impl Sac {
         })
     }
 
+    /// The critics' variables (for checkpoints).
+    pub fn critic_varmap(&self) -> &VarMap {
+        &self.critic.varmap
+    }
+
+    /// The target critics' variables (for checkpoints).
+    pub fn target_varmap(&self) -> &VarMap {
+        &self.target.varmap
+    }
+
     pub fn alpha(&self) -> Result<f64> {
         Ok(self.log_alpha.as_tensor().exp()?.to_vec1::<f32>()?[0] as f64)
     }

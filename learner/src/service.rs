@@ -188,6 +188,53 @@ fn weights_of(
     })
 }
 
+/// Write `varmap` as `<dir>/<name>.safetensors` atomically: a temporary file, synced, then
+/// renamed over the old one.
+fn save_atomic(dir: &std::path::Path, name: &str, varmap: &candle_nn::VarMap) -> Result<()> {
+    let tmp = dir.join(format!("{name}.safetensors.tmp"));
+    varmap
+        .save(&tmp)
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::File::open(&tmp)
+        .and_then(|f| f.sync_all())
+        .with_context(|| format!("syncing {}", tmp.display()))?;
+    let dst = dir.join(format!("{name}.safetensors"));
+    std::fs::rename(&tmp, &dst)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), dst.display()))
+}
+
+/// The networks of the run, under `<out>/checkpoint/`, with `checkpoint.json` (version,
+/// env steps, updates) written last. (Full checkpoints for resuming, with optimiser state,
+/// replay buffer and RNGs, come with run resume.)
+fn save_networks(
+    out: &std::path::Path,
+    backbone: &Backbone,
+    version: u64,
+    env_steps: u64,
+    updates: u64,
+) -> Result<()> {
+    let dir = out.join("checkpoint");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    match backbone {
+        Backbone::Sac(s) => {
+            save_atomic(&dir, "policy", &s.policy.varmap)?;
+            save_atomic(&dir, "critic", s.critic_varmap())?;
+            save_atomic(&dir, "target_critic", s.target_varmap())?;
+        }
+        Backbone::Ppo(p, _) => {
+            save_atomic(&dir, "policy", &p.policy.varmap)?;
+            save_atomic(&dir, "value", &p.value.varmap)?;
+        }
+    }
+    let manifest =
+        serde_json::json!({ "version": version, "env_steps": env_steps, "updates": updates });
+    let tmp = dir.join("checkpoint.json.tmp");
+    std::fs::write(&tmp, manifest.to_string())
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, dir.join("checkpoint.json"))
+        .with_context(|| format!("renaming {}", tmp.display()))
+}
+
 /// Train until `total_steps` env steps or `shutdown`; then tell the actors to stop.
 pub async fn run(
     cfg: LearnerConfig,
@@ -344,6 +391,9 @@ pub async fn run(
             if let Some(f) = curve.as_mut() {
                 writeln!(f, "{}", row.csv())?;
                 f.flush()?;
+            }
+            if let Some(out) = &cfg.out {
+                save_networks(out, &backbone, version, env_steps, updates)?;
             }
             summary.rows.push(row);
             window = Window::default();
