@@ -139,11 +139,21 @@ pub async fn run(
                     out.copy_from_slice(&a[..ACT_DIM]);
                     Ok(out)
                 })?,
-                None => point_episode(seed, POINT_HORIZON, |obs| {
-                    policy
-                        .act(obs, &mut rng, false)
-                        .unwrap_or_else(|_| vec![0.0; POINT_ACT])
-                }),
+                None => {
+                    // NOTE: the point task takes infallible actions; keep the first
+                    // policy error and report it after the episode.
+                    let mut failed = None;
+                    let t = point_episode(seed, POINT_HORIZON, |obs| {
+                        policy.act(obs, &mut rng, false).unwrap_or_else(|e| {
+                            failed.get_or_insert(e);
+                            vec![0.0; POINT_ACT]
+                        })
+                    });
+                    if let Some(e) = failed {
+                        return Err(e.context(format!("actor {}: the policy failed", cfg.id)));
+                    }
+                    t
+                }
             };
             t.policy_version = policy.version;
             Ok(t)
