@@ -160,15 +160,8 @@ impl WeightsClient {
             .map_err(zerr("querying the newest weights"))?;
         let mut best: Option<Weights> = None;
         while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result() {
-                if let Some(w) = accept(&self.run, sample, &self.dropped, |b| match b {
-                    Body::Weights(w) => Some(w),
-                    _ => None,
-                }) {
-                    if best.as_ref().is_none_or(|b| w.version > b.version) {
-                        best = Some(w);
-                    }
-                }
+            if let Some(w) = reply.result().ok().and_then(|sample| self.take(sample)) {
+                keep_newest(&mut best, w);
             }
         }
         Ok(best)
@@ -179,9 +172,7 @@ impl WeightsClient {
         let mut best: Option<Weights> = None;
         while let Ok(Some(sample)) = self.subscriber.try_recv() {
             if let Some(w) = self.take(&sample) {
-                if best.as_ref().is_none_or(|b| w.version > b.version) {
-                    best = Some(w);
-                }
+                keep_newest(&mut best, w);
             }
         }
         best
@@ -206,6 +197,13 @@ impl WeightsClient {
             Body::Weights(w) => Some(w),
             _ => None,
         })
+    }
+}
+
+/// Keep `w` in `best` if it is a newer version.
+fn keep_newest(best: &mut Option<Weights>, w: Weights) {
+    if best.as_ref().is_none_or(|b| w.version > b.version) {
+        *best = Some(w);
     }
 }
 
