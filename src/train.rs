@@ -36,6 +36,10 @@ pub struct LearnArgs {
     /// Env steps between rows of the learning curve.
     #[arg(long, default_value_t = 10_000)]
     pub log_every: u64,
+    /// Deterministic evaluation episodes (the policy's mean action, fixed seeds) at each
+    /// row of the learning curve; 0 turns evaluation off.
+    #[arg(long, default_value_t = 10)]
+    pub eval_episodes: u32,
     /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
     #[arg(long)]
     pub run: Option<String>,
@@ -82,6 +86,8 @@ impl LearnArgs {
             log_every: self.log_every,
             actors,
             episode_steps,
+            eval_episodes: self.eval_episodes,
+            progress: std::io::IsTerminal::is_terminal(&std::io::stderr()),
             out: Some(
                 self.out
                     .clone()

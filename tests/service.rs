@@ -38,7 +38,9 @@ fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
         log_every: 1000,
         actors: 2,
         episode_steps: pbrl_actor::runner::POINT_HORIZON,
+        eval_episodes: 0,
         out: None,
+        progress: false,
     }
 }
 
@@ -162,7 +164,7 @@ async fn ppo_trains_only_on_the_current_version() {
     // The run folder: config, curve with a row per 1000 env steps, and the networks.
     let curve = std::fs::read_to_string(dir.path().join("curve.csv")).unwrap();
     assert_eq!(curve.lines().count(), 1 + summary.rows.len());
-    assert!(curve.starts_with("env_steps,episodes,return_truth,success_rate,return_human"));
+    assert!(curve.starts_with("env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate"));
     let manifest = std::fs::read_to_string(dir.path().join("checkpoint/checkpoint.json")).unwrap();
     assert!(
         manifest.contains(&format!("\"version\":{}", summary.policy_version)),
@@ -186,4 +188,65 @@ async fn ppo_trains_only_on_the_current_version() {
             .unwrap()
             .unwrap();
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let run = "eval-test";
+    let watcher = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
+        .await
+        .unwrap();
+    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let cfg = LearnerConfig {
+        eval_episodes: 4,
+        ..learner_config(run, Algo::Sac, 3_000)
+    };
+    let learner = tokio::spawn(service::run(cfg, learner_session, std::future::pending()));
+    let (_stop_a, actor_a) = actor(&endpoint, run, 0);
+    let (_stop_b, actor_b) = actor(&endpoint, run, 1);
+    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert_eq!(summary.rows.len(), 3, "one row per 1,000 env steps");
+    for (k, row) in summary.rows.iter().enumerate() {
+        let due = 1_000 * (k as u64 + 1);
+        assert!(
+            (due..due + 30).contains(&row.env_steps),
+            "row {k} at {} env steps",
+            row.env_steps
+        );
+        assert_eq!(row.eval_episodes, 4, "row {k} has its evaluation");
+        assert_eq!(row.eval_version, row.policy_version, "row {k}");
+        assert!(row.eval_return_truth.is_finite() && row.eval_return_truth < 0.0);
+        assert!((0.0..=1.0).contains(&row.eval_success_rate));
+    }
+    for a in [actor_a, actor_b] {
+        tokio::time::timeout(Duration::from_secs(30), a)
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+    }
+
+    // The same request gives the same episodes: the mean action, fixed seeds.
+    let w = weights.newest().expect("the watcher saw weights");
+    let request = pbrl_common::wire::EvalRequest {
+        id: 7,
+        actor: 0,
+        weights: w,
+        seeds: vec![service::EVAL_SEED_BASE, service::EVAL_SEED_BASE + 1],
+    };
+    let a = runner::evaluate(None, &request, 0).unwrap();
+    let b = runner::evaluate(None, &request, 1).unwrap();
+    assert_eq!(a.episodes, b.episodes);
+    assert_eq!(a.version, request.weights.version);
+    assert_ne!(
+        a.episodes[0].return_truth, a.episodes[1].return_truth,
+        "different seeds, different episodes"
+    );
 }

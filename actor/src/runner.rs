@@ -5,11 +5,15 @@ use std::future::Future;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use pbrl_common::bus::{wait_until, TrajectoryPublisher, WeightsClient};
-use pbrl_common::Keys;
+use pbrl_common::bus::{
+    wait_until, MessagePublisher, MessageSubscriber, TrajectoryPublisher, WeightsClient,
+};
+use pbrl_common::wire::{Body, EvalRequest, EvalResult};
+use pbrl_common::{Keys, Trajectory};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use zenoh::qos::Priority;
 use zenoh::Session;
 
 use crate::config::WorldConfig;
@@ -54,7 +58,68 @@ pub struct ActorConfig {
     pub seed: u64,
 }
 
-/// Run episodes until `shutdown` resolves or the learner says stop.
+/// One episode of `task` with `policy` (the mean action when `deterministic`).
+fn episode(
+    world: Option<&mut FeedingWorld>,
+    policy: &Policy,
+    seed: u64,
+    rng: &mut ChaCha8Rng,
+    deterministic: bool,
+) -> Result<Trajectory> {
+    let mut t = match world {
+        Some(w) => run_episode_with(w, seed, |_, obs| {
+            let a = policy
+                .act(obs, rng, deterministic)
+                .map_err(|e| WorldError::Policy(e.to_string()))?;
+            let mut out = [0.0f32; ACT_DIM];
+            out.copy_from_slice(&a[..ACT_DIM]);
+            Ok(out)
+        })?,
+        None => {
+            // NOTE: the point task takes infallible actions; keep the first policy error
+            // and report it after the episode.
+            let mut failed = None;
+            let t = point_episode(seed, POINT_HORIZON, |obs| {
+                policy.act(obs, rng, deterministic).unwrap_or_else(|e| {
+                    failed.get_or_insert(e);
+                    vec![0.0; POINT_ACT]
+                })
+            });
+            if let Some(e) = failed {
+                return Err(e.context("the policy failed"));
+            }
+            t
+        }
+    };
+    t.policy_version = policy.version;
+    Ok(t)
+}
+
+/// Run the deterministic evaluation episodes `req` asks for.
+pub fn evaluate(
+    world: Option<&mut FeedingWorld>,
+    req: &EvalRequest,
+    actor: u32,
+) -> Result<EvalResult> {
+    let policy = Policy::from_weights(&req.weights)?;
+    // NOTE: the mean action draws no noise; the generator is only a parameter.
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut world = world;
+    let episodes = req
+        .seeds
+        .iter()
+        .map(|&seed| Ok(episode(world.as_deref_mut(), &policy, seed, &mut rng, true)?.outcome))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(EvalResult {
+        id: req.id,
+        actor,
+        version: policy.version,
+        episodes,
+    })
+}
+
+/// Run episodes until `shutdown` resolves or the learner says stop; run evaluation
+/// episodes when the learner asks.
 pub async fn run(
     cfg: ActorConfig,
     session: Session,
@@ -63,6 +128,13 @@ pub async fn run(
     let keys = Keys::new(&cfg.run)?;
     let weights = WeightsClient::new(&session, &keys).await?;
     let publisher = TrajectoryPublisher::new(&session, &keys, cfg.id).await?;
+    let eval_requests = MessageSubscriber::new(&session, &keys, keys.eval_request(cfg.id)).await?;
+    let eval_results =
+        MessagePublisher::new(&session, &keys, keys.eval_result(cfg.id), Priority::Data).await?;
+    let pick = |b: Body| match b {
+        Body::EvalRequest(r) => Some(r),
+        _ => None,
+    };
     let stop = session
         .declare_subscriber(keys.stop())
         .await
@@ -97,9 +169,15 @@ pub async fn run(
     let mut rng = ChaCha8Rng::seed_from_u64(
         cfg.seed ^ (0x9e37_79b9_7f4a_7c15u64.wrapping_mul(cfg.id as u64 + 1)),
     );
-    let mut episode: u64 = 0;
+    let mut episodes: u64 = 0;
     let mut on_version = 0u32;
     loop {
+        if let Some(req) = eval_requests.try_next(pick)? {
+            let r = tokio::task::block_in_place(|| evaluate(world.as_mut(), &req, cfg.id))
+                .with_context(|| format!("actor {}: evaluation {}", cfg.id, req.id))?;
+            eval_results.send(&Body::EvalResult(r)).await?;
+            continue;
+        }
         if let Some(w) = weights.newest() {
             if w.version > policy.version {
                 policy = Policy::from_weights(&w).with_context(|| format!("actor {}", cfg.id))?;
@@ -111,7 +189,7 @@ pub async fn run(
             tokio::select! {
                 _ = &mut shutdown => return Ok(()),
                 _ = stop.recv_async() => {
-                    tracing::info!(actor = cfg.id, episodes = episode, "the learner says stop");
+                    tracing::info!(actor = cfg.id, episodes, "the learner says stop");
                     return Ok(());
                 }
                 w = weights.next() => {
@@ -121,50 +199,30 @@ pub async fn run(
                         on_version = 0;
                     }
                 }
+                req = eval_requests.next(pick) => {
+                    let req = req?;
+                    let r = tokio::task::block_in_place(|| evaluate(world.as_mut(), &req, cfg.id))
+                        .with_context(|| format!("actor {}: evaluation {}", cfg.id, req.id))?;
+                    eval_results.send(&Body::EvalResult(r)).await?;
+                }
             }
         }
         on_version += 1;
         // Seeds: actor i of the run plays seeds seed * 2^32 + i + k * 2^16 (k = episode).
-        let seed = (cfg.seed << 32) ^ (cfg.id as u64) ^ (episode << 16);
-        episode += 1;
+        let seed = (cfg.seed << 32) ^ (cfg.id as u64) ^ (episodes << 16);
+        episodes += 1;
         // NOTE: an episode is CPU work (a few ms for feeding); run it without holding up
         // the runtime's other tasks.
-        let trajectory = tokio::task::block_in_place(|| -> Result<_> {
-            let mut t = match world.as_mut() {
-                Some(w) => run_episode_with(w, seed, |_, obs| {
-                    let a = policy
-                        .act(obs, &mut rng, false)
-                        .map_err(|e| WorldError::Policy(e.to_string()))?;
-                    let mut out = [0.0f32; ACT_DIM];
-                    out.copy_from_slice(&a[..ACT_DIM]);
-                    Ok(out)
-                })?,
-                None => {
-                    // NOTE: the point task takes infallible actions; keep the first
-                    // policy error and report it after the episode.
-                    let mut failed = None;
-                    let t = point_episode(seed, POINT_HORIZON, |obs| {
-                        policy.act(obs, &mut rng, false).unwrap_or_else(|e| {
-                            failed.get_or_insert(e);
-                            vec![0.0; POINT_ACT]
-                        })
-                    });
-                    if let Some(e) = failed {
-                        return Err(e.context(format!("actor {}: the policy failed", cfg.id)));
-                    }
-                    t
-                }
-            };
-            t.policy_version = policy.version;
-            Ok(t)
-        })?;
+        let trajectory =
+            tokio::task::block_in_place(|| episode(world.as_mut(), &policy, seed, &mut rng, false))
+                .with_context(|| format!("actor {}: episode seed {seed}", cfg.id))?;
         tokio::select! {
             biased;
             _ = &mut shutdown => return Ok(()),
             r = publisher.publish(trajectory, false) => r?,
         }
         if let Ok(Some(_)) = stop.try_recv() {
-            tracing::info!(actor = cfg.id, episodes = episode, "the learner says stop");
+            tracing::info!(actor = cfg.id, episodes, "the learner says stop");
             return Ok(());
         }
     }

@@ -248,19 +248,76 @@ impl TrajectoryPublisher {
     }
 }
 
-/// The learner's subscription to every actor's trajectories.
-pub struct TrajectorySubscriber {
+/// A publisher of whole messages with `Block` at `priority` (evaluation requests and
+/// results).
+pub struct MessagePublisher {
+    run: String,
+    publisher: Publisher<'static>,
+}
+
+impl MessagePublisher {
+    pub async fn new(
+        session: &Session,
+        keys: &Keys,
+        key: String,
+        priority: Priority,
+    ) -> Result<Self> {
+        let publisher = session
+            .declare_publisher(key)
+            .congestion_control(CongestionControl::Block)
+            .priority(priority)
+            .await
+            .map_err(zerr("declaring a publisher"))?;
+        Ok(Self {
+            run: keys.run().to_string(),
+            publisher,
+        })
+    }
+
+    pub async fn send(&self, body: &Body) -> Result<()> {
+        self.publisher
+            .put(wire::encode(&self.run, body))
+            .await
+            .map_err(|e| anyhow!("publishing on {}: {e}", self.publisher.key_expr()))
+    }
+
+    /// Whether a matching subscription is known yet.
+    pub async fn has_subscribers(&self) -> Result<bool> {
+        has_subscribers(&self.publisher).await
+    }
+}
+
+/// Put one message on `key` with `Block` at `priority` (for keys without a long-lived
+/// publisher, such as each actor's evaluation requests).
+pub async fn put_message(
+    session: &Session,
+    keys: &Keys,
+    key: String,
+    body: &Body,
+    priority: Priority,
+) -> Result<()> {
+    session
+        .put(&key, wire::encode(keys.run(), body))
+        .congestion_control(CongestionControl::Block)
+        .priority(priority)
+        .await
+        .map_err(|e| anyhow!("publishing on {key}: {e}"))
+}
+
+/// A subscription that decodes every message and keeps the kind `pick` accepts; anything
+/// else is dropped with a warning and counted.
+pub struct MessageSubscriber {
     run: String,
     subscriber: Subscriber<FifoChannelHandler<Sample>>,
     pub dropped: Dropped,
 }
 
-impl TrajectorySubscriber {
-    pub async fn new(session: &Session, keys: &Keys) -> Result<Self> {
+impl MessageSubscriber {
+    pub async fn new(session: &Session, keys: &Keys, key: String) -> Result<Self> {
         let subscriber = session
-            .declare_subscriber(keys.all_trajectories())
+            .declare_subscriber(key)
             .await
-            .map_err(zerr("declaring the trajectory subscriber"))?;
+            .map_err(zerr("declaring a subscriber"))?;
         Ok(Self {
             run: keys.run().to_string(),
             subscriber,
@@ -268,21 +325,58 @@ impl TrajectorySubscriber {
         })
     }
 
-    /// The next valid trajectory (invalid ones are dropped and counted).
-    pub async fn next(&self) -> Result<TrajectoryMsg> {
+    /// The next valid message of the kind `pick` accepts.
+    pub async fn next<T>(&self, pick: impl Fn(Body) -> Option<T>) -> Result<T> {
         loop {
             let sample = self
                 .subscriber
                 .recv_async()
                 .await
-                .map_err(zerr("receiving trajectories"))?;
-            if let Some(t) = accept(&self.run, &sample, &self.dropped, |b| match b {
-                Body::Trajectory(t) => Some(*t),
-                _ => None,
-            }) {
+                .map_err(|e| anyhow!("receiving on {}: {e}", self.subscriber.key_expr()))?;
+            if let Some(t) = accept(&self.run, &sample, &self.dropped, &pick) {
                 return Ok(t);
             }
         }
+    }
+
+    /// A valid message already received, if any.
+    pub fn try_next<T>(&self, pick: impl Fn(Body) -> Option<T>) -> Result<Option<T>> {
+        while let Some(sample) = self
+            .subscriber
+            .try_recv()
+            .map_err(|e| anyhow!("receiving on {}: {e}", self.subscriber.key_expr()))?
+        {
+            if let Some(t) = accept(&self.run, &sample, &self.dropped, &pick) {
+                return Ok(Some(t));
+            }
+        }
+        Ok(None)
+    }
+}
+
+/// The learner's subscription to every actor's trajectories.
+pub struct TrajectorySubscriber {
+    inner: MessageSubscriber,
+    pub dropped: Dropped,
+}
+
+impl TrajectorySubscriber {
+    pub async fn new(session: &Session, keys: &Keys) -> Result<Self> {
+        let inner = MessageSubscriber::new(session, keys, keys.all_trajectories()).await?;
+        Ok(Self {
+            dropped: inner.dropped.clone(),
+            inner,
+        })
+    }
+
+    /// The next valid trajectory (invalid ones are dropped and counted).
+    pub async fn next(&self) -> Result<TrajectoryMsg> {
+        self.inner
+            .next(|b| match b {
+                Body::Trajectory(t) => Some(*t),
+                _ => None,
+            })
+            .await
     }
 }
 

@@ -59,9 +59,9 @@ impl Keys {
         format!("pbrl/{}/actor/*/trajectory", self.run)
     }
 
-    /// Requests for deterministic evaluation episodes, from the learner.
-    pub fn eval_request(&self) -> String {
-        format!("pbrl/{}/learner/0/eval", self.run)
+    /// The learner's requests to actor `actor` for deterministic evaluation episodes.
+    pub fn eval_request(&self, actor: u32) -> String {
+        format!("pbrl/{}/learner/0/eval/{actor}", self.run)
     }
 
     /// Evaluation episodes published by actor `actor`.

@@ -5,10 +5,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::trajectory::{Trajectory, TrajectoryError};
+use crate::trajectory::{Outcome, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 1;
+pub const WIRE_FORMAT: u16 = 2;
 
 /// One named tensor of a network, row-major f32.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -50,12 +50,27 @@ pub struct TrajectoryMsg {
     pub trajectory: Trajectory,
 }
 
-/// A request for deterministic evaluation episodes with weights of `version`.
+/// A request to one actor for deterministic evaluation episodes (the policy's mean action)
+/// of the weights it carries, so the evaluation is of exactly that snapshot.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EvalRequest {
-    pub version: u64,
-    /// Episode seeds; actors split them by `seed % actors == actor`.
+    /// Names the evaluation (the learner uses the env steps it was asked at).
+    pub id: u64,
+    /// The actor asked to run it.
+    pub actor: u32,
+    pub weights: Weights,
+    /// Episode seeds (the same at every evaluation of a run, so rows are comparable).
     pub seeds: Vec<u64>,
+}
+
+/// The outcome of each evaluation episode, in the order of the request's seeds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalResult {
+    pub id: u64,
+    pub actor: u32,
+    /// The weights version that acted.
+    pub version: u64,
+    pub episodes: Vec<Outcome>,
 }
 
 /// Everything that travels.
@@ -63,7 +78,8 @@ pub struct EvalRequest {
 pub enum Body {
     Weights(Weights),
     Trajectory(Box<TrajectoryMsg>),
-    EvalRequest(EvalRequest),
+    EvalRequest(Box<EvalRequest>),
+    EvalResult(EvalResult),
     Stop,
 }
 
@@ -89,7 +105,7 @@ pub enum WireError {
         found: usize,
         expected: usize,
     },
-    #[error("weights field {field} holds a non-finite value")]
+    #[error("field {field} holds a non-finite value")]
     NonFinite { field: String },
     #[error(transparent)]
     Trajectory(#[from] TrajectoryError),
@@ -134,7 +150,23 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
     match &env.body {
         Body::Weights(w) => w.validate()?,
         Body::Trajectory(t) => t.trajectory.validate()?,
-        Body::EvalRequest(_) | Body::Stop => {}
+        Body::EvalRequest(r) => r.weights.validate()?,
+        Body::EvalResult(r) => {
+            for (k, o) in r.episodes.iter().enumerate() {
+                let sums = [
+                    o.return_truth,
+                    o.return_human,
+                    o.return_robot,
+                    o.return_task,
+                ];
+                if sums.iter().any(|x| !x.is_finite()) {
+                    return Err(WireError::NonFinite {
+                        field: format!("episodes[{k}] returns"),
+                    });
+                }
+            }
+        }
+        Body::Stop => {}
     }
     Ok(env.body)
 }
@@ -232,7 +264,7 @@ mod tests {
         let bytes = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
         assert!(matches!(
             decode("r", &bytes),
-            Err(WireError::Format { found: 2, .. })
+            Err(WireError::Format { found: 3, .. })
         ));
     }
 }

@@ -1,18 +1,19 @@
 //! The learner service: take trajectories from the actors, train SAC or PPO on the chosen
 //! reward, publish weights, write the learning curve.
 
+use std::collections::VecDeque;
 use std::future::Future;
 use std::io::Write;
 use std::path::PathBuf;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::bus::{TrajectorySubscriber, WeightsServer};
+use pbrl_common::bus::{put_message, MessageSubscriber, TrajectorySubscriber, WeightsServer};
 use pbrl_common::nets::export;
-use pbrl_common::wire::{self, Body, Weights};
+use pbrl_common::wire::{self, Body, EvalRequest, EvalResult, Weights};
 use pbrl_common::{Keys, RunningNorm, StepRewards, Trajectory};
 use serde::{Deserialize, Serialize};
-use zenoh::qos::CongestionControl;
+use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Session;
 
 use crate::ppo::{Ppo, PpoConfig};
@@ -66,14 +67,38 @@ pub struct LearnerConfig {
     pub actors: u32,
     /// Env steps of one episode (for flow control).
     pub episode_steps: u32,
+    /// Deterministic evaluation episodes at each row of the curve (0: none; the row then
+    /// has only the training episodes' figures).
+    pub eval_episodes: u32,
     /// Run folder for the curve (`curve.csv`) and the resolved config; none in tests.
     pub out: Option<PathBuf>,
+    /// Show a progress bar (on a terminal) instead of periodic log lines.
+    #[serde(skip)]
+    pub progress: bool,
 }
 
-/// One row of the learning curve (training episodes since the previous row).
+/// Seeds of the evaluation episodes: the same at every row, apart from training seeds
+/// (those are `seed * 2^32 ^ actor ^ episode * 2^16`, below 2^63 for any sane run).
+pub const EVAL_SEED_BASE: u64 = 1 << 63;
+
+/// An evaluation unanswered this long is asked of another actor.
+const EVAL_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Times an evaluation is asked before its row is written without it.
+const EVAL_TRIES: u32 = 3;
+
+/// One row of the learning curve: the training episodes since the previous row, and the
+/// deterministic evaluation episodes of the weights at `env_steps` (NaN when not run).
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct CurveRow {
     pub env_steps: u64,
+    pub wall_s: f64,
+    pub eval_episodes: u64,
+    pub eval_return_truth: f64,
+    pub eval_success_rate: f64,
+    pub eval_return_human: f64,
+    pub eval_return_task: f64,
+    pub eval_version: u64,
     pub episodes: u64,
     pub return_truth: f64,
     pub success_rate: f64,
@@ -90,13 +115,20 @@ pub struct CurveRow {
     pub stale_trajectories: u64,
 }
 
-const CURVE_HEADER: &str = "env_steps,episodes,return_truth,success_rate,return_human,return_task,loss_critic_or_value,loss_actor,alpha_or_kl,env_steps_per_s,updates_per_s,updates,policy_version,dropped_messages,stale_trajectories";
+const CURVE_HEADER: &str = "env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate,eval_return_human,eval_return_task,eval_version,episodes,return_truth,success_rate,return_human,return_task,loss_critic_or_value,loss_actor,alpha_or_kl,env_steps_per_s,updates_per_s,updates,policy_version,dropped_messages,stale_trajectories";
 
 impl CurveRow {
     fn csv(&self) -> String {
         format!(
-            "{},{},{:.4},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.1},{:.2},{},{},{},{}",
+            "{},{:.1},{},{:.4},{:.4},{:.4},{:.4},{},{},{:.4},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.1},{:.2},{},{},{},{}",
             self.env_steps,
+            self.wall_s,
+            self.eval_episodes,
+            self.eval_return_truth,
+            self.eval_success_rate,
+            self.eval_return_human,
+            self.eval_return_task,
+            self.eval_version,
             self.episodes,
             self.return_truth,
             self.success_rate,
@@ -235,6 +267,189 @@ fn save_networks(
         .with_context(|| format!("renaming {}", tmp.display()))
 }
 
+/// A row waiting for its evaluation.
+struct Pending {
+    row: CurveRow,
+    request: EvalRequest,
+    sent: Instant,
+    tries: u32,
+}
+
+/// The learning curve: rows in env-step order, each written once its evaluation is in.
+struct Curve {
+    file: Option<std::fs::File>,
+    pending: VecDeque<Pending>,
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Curve {
+    fn write(&mut self, row: CurveRow, summary: &mut Summary) -> Result<()> {
+        let line = format!(
+            "{} env steps: eval return {:.1}, success {:.0}% ({} episodes, v{}); training return {:.1}, success {:.0}%, {:.0} env steps/s",
+            row.env_steps,
+            row.eval_return_truth,
+            100.0 * row.eval_success_rate,
+            row.eval_episodes,
+            row.eval_version,
+            row.return_truth,
+            100.0 * row.success_rate,
+            row.env_steps_per_s,
+        );
+        match &self.bar {
+            Some(bar) => {
+                bar.println(&line);
+                bar.set_message(format!(
+                    "eval success {:.0}%, return {:.1}",
+                    100.0 * row.eval_success_rate,
+                    row.eval_return_truth
+                ));
+            }
+            None => tracing::info!("{line}"),
+        }
+        if let Some(f) = self.file.as_mut() {
+            writeln!(f, "{}", row.csv())?;
+            f.flush()?;
+        }
+        summary.rows.push(row);
+        Ok(())
+    }
+
+    /// Fill in an evaluation's figures, then write every row that is complete in order.
+    fn complete(&mut self, r: EvalResult, summary: &mut Summary) -> Result<()> {
+        let Some(p) = self.pending.iter_mut().find(|p| p.request.id == r.id) else {
+            tracing::debug!(id = r.id, "an evaluation answered twice or after its row");
+            return Ok(());
+        };
+        if r.episodes.len() != p.request.seeds.len() {
+            summary.dropped_messages += 1;
+            tracing::warn!(
+                id = r.id,
+                actor = r.actor,
+                found = r.episodes.len(),
+                expected = p.request.seeds.len(),
+                "dropped an evaluation with the wrong number of episodes"
+            );
+            return Ok(());
+        }
+        let n = r.episodes.len().max(1) as f64;
+        let mean =
+            |f: &dyn Fn(&pbrl_common::Outcome) -> f64| r.episodes.iter().map(f).sum::<f64>() / n;
+        p.row.eval_episodes = r.episodes.len() as u64;
+        p.row.eval_return_truth = mean(&|o| o.return_truth as f64);
+        p.row.eval_success_rate = mean(&|o| o.success as u8 as f64);
+        p.row.eval_return_human = mean(&|o| o.return_human as f64);
+        p.row.eval_return_task = mean(&|o| o.return_task as f64);
+        p.row.eval_version = r.version;
+        while self
+            .pending
+            .front()
+            .is_some_and(|p| p.row.eval_episodes > 0)
+        {
+            let p = self.pending.pop_front().expect("the front exists");
+            self.write(p.row, summary)?;
+        }
+        Ok(())
+    }
+
+    /// Write every pending row as it is (an evaluation not answered stays NaN).
+    fn flush(&mut self, summary: &mut Summary) -> Result<()> {
+        while let Some(p) = self.pending.pop_front() {
+            self.write(p.row, summary)?;
+        }
+        Ok(())
+    }
+}
+
+/// The actors that sent a trajectory recently, for evaluation requests.
+#[derive(Default)]
+struct Actors {
+    last_seen: std::collections::BTreeMap<u32, Instant>,
+    turn: usize,
+}
+
+impl Actors {
+    /// The next live actor in turn.
+    fn next(&mut self) -> u32 {
+        let live: Vec<u32> = self
+            .last_seen
+            .iter()
+            .filter(|(_, t)| t.elapsed() < EVAL_TIMEOUT)
+            .map(|(a, _)| *a)
+            .collect();
+        self.turn += 1;
+        if live.is_empty() {
+            // NOTE: nobody sent anything for a while; ask the first actor known.
+            return self.last_seen.keys().next().copied().unwrap_or(0);
+        }
+        live[self.turn % live.len()]
+    }
+}
+
+/// Ask again (another actor) for evaluations not answered in time; write a row without
+/// its evaluation after [`EVAL_TRIES`].
+async fn retry_evaluations(
+    session: &Session,
+    keys: &Keys,
+    curve: &mut Curve,
+    actors: &mut Actors,
+    summary: &mut Summary,
+) -> Result<()> {
+    for p in curve.pending.iter_mut() {
+        if p.row.eval_episodes > 0 || p.sent.elapsed() < EVAL_TIMEOUT {
+            continue;
+        }
+        if p.tries >= EVAL_TRIES {
+            tracing::warn!(
+                env_steps = p.row.env_steps,
+                tries = p.tries,
+                "no actor answered the evaluation; its row is written without it"
+            );
+            p.row.eval_episodes = u64::MAX; // marks it done
+            continue;
+        }
+        p.request.actor = actors.next();
+        p.tries += 1;
+        p.sent = Instant::now();
+        tracing::warn!(
+            env_steps = p.row.env_steps,
+            actor = p.request.actor,
+            "an evaluation went unanswered; asking another actor"
+        );
+        send_eval(session, keys, &p.request).await?;
+    }
+    // Rows given up on: write them in order.
+    while curve
+        .pending
+        .front()
+        .is_some_and(|p| p.row.eval_episodes > 0)
+    {
+        let mut p = curve.pending.pop_front().expect("the front exists");
+        if p.row.eval_episodes == u64::MAX {
+            p.row.eval_episodes = 0;
+        }
+        curve.write(p.row, summary)?;
+    }
+    Ok(())
+}
+
+async fn send_eval(session: &Session, keys: &Keys, request: &EvalRequest) -> Result<()> {
+    put_message(
+        session,
+        keys,
+        keys.eval_request(request.actor),
+        &Body::EvalRequest(Box::new(request.clone())),
+        Priority::Data,
+    )
+    .await
+}
+
+fn pick_result(b: Body) -> Option<EvalResult> {
+    match b {
+        Body::EvalResult(r) => Some(r),
+        _ => None,
+    }
+}
+
 /// Train until `total_steps` env steps or `shutdown`; then tell the actors to stop.
 pub async fn run(
     cfg: LearnerConfig,
@@ -244,12 +459,13 @@ pub async fn run(
     let keys = Keys::new(&cfg.run)?;
     let server = WeightsServer::new(&session, &keys).await?;
     let trajectories = TrajectorySubscriber::new(&session, &keys).await?;
+    let eval_results = MessageSubscriber::new(&session, &keys, keys.all_eval_results()).await?;
     let stop = session
         .declare_publisher(keys.stop())
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| anyhow::anyhow!("declaring the stop publisher: {e}"))?;
-    let mut curve = match &cfg.out {
+    let file = match &cfg.out {
         Some(dir) => {
             std::fs::create_dir_all(dir)
                 .with_context(|| format!("creating run folder {}", dir.display()))?;
@@ -265,6 +481,26 @@ pub async fn run(
         None => None,
     };
     tracing::info!(config = %serde_json::to_string(&cfg)?, "learner starts");
+    let bar = cfg.progress.then(|| {
+        let bar = indicatif::ProgressBar::new(cfg.total_steps);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] {human_pos}/{human_len} env steps, {per_sec}, {eta} left, {msg}",
+            )
+            .expect("the progress template is valid")
+            .progress_chars("=> "),
+        );
+        bar
+    });
+    let mut curve = Curve {
+        file,
+        pending: VecDeque::new(),
+        bar,
+    };
+    let mut actors = Actors::default();
+    let seeds: Vec<u64> = (0..cfg.eval_episodes as u64)
+        .map(|k| EVAL_SEED_BASE + k)
+        .collect();
 
     let (obs_dim, act_dim) = (cfg.obs_dim, cfg.act_dim);
     let mut backbone = match cfg.algo {
@@ -285,10 +521,20 @@ pub async fn run(
     let mut next_row = cfg.log_every;
     let (mut last_loss, mut last_actor, mut last_aux) = (0.0f64, 0.0f64, 0.0f64);
     let start = Instant::now();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
     tokio::pin!(shutdown);
+    let mut stopped = false;
     while env_steps < cfg.total_steps {
         let msg = tokio::select! {
-            _ = &mut shutdown => break,
+            _ = &mut shutdown => { stopped = true; break }
+            r = eval_results.next(pick_result) => {
+                curve.complete(r?, &mut summary)?;
+                continue;
+            }
+            _ = tick.tick() => {
+                retry_evaluations(&session, &keys, &mut curve, &mut actors, &mut summary).await?;
+                continue;
+            }
             m = trajectories.next() => m?,
         };
         let t = msg.trajectory;
@@ -297,6 +543,7 @@ pub async fn run(
             .first_version_by_actor
             .entry(msg.actor)
             .or_insert(t.policy_version);
+        actors.last_seen.insert(msg.actor, Instant::now());
         let mut publish = false;
         match &mut backbone {
             Backbone::Sac(sac) => {
@@ -347,6 +594,9 @@ pub async fn run(
             }
         }
         env_steps += t.steps() as u64;
+        if let Some(bar) = &curve.bar {
+            bar.set_position(env_steps.min(cfg.total_steps));
+        }
         window.episodes += 1;
         window.truth += t.outcome.return_truth as f64;
         window.human += t.outcome.return_human as f64;
@@ -365,6 +615,13 @@ pub async fn run(
             let n = window.episodes.max(1) as f64;
             let row = CurveRow {
                 env_steps,
+                wall_s: secs,
+                eval_episodes: 0,
+                eval_return_truth: f64::NAN,
+                eval_success_rate: f64::NAN,
+                eval_return_human: f64::NAN,
+                eval_return_task: f64::NAN,
+                eval_version: 0,
                 episodes: window.episodes,
                 return_truth: window.truth / n,
                 success_rate: window.success / n,
@@ -377,32 +634,54 @@ pub async fn run(
                 updates_per_s: updates as f64 / secs,
                 updates,
                 policy_version: version,
-                dropped_messages: trajectories.dropped.get(),
+                dropped_messages: trajectories.dropped.get()
+                    + eval_results.dropped.get()
+                    + summary.dropped_messages,
                 stale_trajectories: summary.stale_trajectories,
             };
-            tracing::info!(
-                env_steps,
-                return_truth = row.return_truth,
-                success_rate = row.success_rate,
-                steps_per_s = row.env_steps_per_s,
-                version,
-                "charts"
-            );
-            if let Some(f) = curve.as_mut() {
-                writeln!(f, "{}", row.csv())?;
-                f.flush()?;
-            }
             if let Some(out) = &cfg.out {
                 save_networks(out, &backbone, version, env_steps, updates)?;
             }
-            summary.rows.push(row);
+            if cfg.eval_episodes == 0 {
+                curve.write(row, &mut summary)?;
+            } else {
+                let request = EvalRequest {
+                    id: env_steps,
+                    actor: actors.next(),
+                    weights: weights_of(&cfg, &backbone, version, env_steps)?,
+                    seeds: seeds.clone(),
+                };
+                send_eval(&session, &keys, &request).await?;
+                curve.pending.push_back(Pending {
+                    row,
+                    request,
+                    sent: Instant::now(),
+                    tries: 1,
+                });
+            }
             window = Window::default();
         }
+    }
+    // The last evaluations: the actors answer while they wait for weights that will not
+    // come; their last trajectories are drained so nothing blocks.
+    while !stopped && !curve.pending.is_empty() {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            r = eval_results.next(pick_result) => curve.complete(r?, &mut summary)?,
+            _ = tick.tick() => {
+                retry_evaluations(&session, &keys, &mut curve, &mut actors, &mut summary).await?;
+            }
+            m = trajectories.next() => { m?; }
+        }
+    }
+    curve.flush(&mut summary)?;
+    if let Some(bar) = &curve.bar {
+        bar.finish();
     }
     let _ = stop.put(wire::encode(&cfg.run, &Body::Stop)).await;
     summary.env_steps = env_steps;
     summary.updates = updates;
     summary.policy_version = version;
-    summary.dropped_messages = trajectories.dropped.get();
+    summary.dropped_messages += trajectories.dropped.get() + eval_results.dropped.get();
     Ok(summary)
 }
