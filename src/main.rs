@@ -40,17 +40,17 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let command = Cli::parse().command;
+    // NOTE: candle's elementwise pool spins while its workers run; beside the actors and
+    // zenoh, on 2 cores, a descheduled worker stalls the learner for whole time slices (a
+    // SAC run next to another went at 60 env steps/s). It gains nothing at these sizes
+    // (`shared/perf.md`), so pbrl runs it with one thread unless the user says otherwise.
+    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+        std::env::set_var("CANDLE_NUM_THREADS", "1");
+    }
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
         Command::Bench(cmd) => return train::bench(cmd),
         _ => {}
-    }
-    // NOTE: candle's elementwise pool spins while its workers run; beside the actors and
-    // zenoh, on 2 cores, a descheduled worker stalls the learner for whole time slices (a
-    // SAC run next to another went at 60 env steps/s). It gains nothing at these sizes
-    // (`shared/perf.md`), so services run it with one thread unless the user says otherwise.
-    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
-        std::env::set_var("CANDLE_NUM_THREADS", "1");
     }
     // NOTE: zenoh needs tokio's multi-thread scheduler; two workers match the 2 cores.
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -40,6 +40,9 @@ pub struct LearnArgs {
     /// row of the learning curve; 0 turns evaluation off.
     #[arg(long, default_value_t = 10)]
     pub eval_episodes: u32,
+    /// No progress bar even on a terminal.
+    #[arg(long)]
+    pub quiet: bool,
     /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
     #[arg(long)]
     pub run: Option<String>,
@@ -87,7 +90,7 @@ impl LearnArgs {
             actors,
             episode_steps,
             eval_episodes: self.eval_episodes,
-            progress: std::io::IsTerminal::is_terminal(&std::io::stderr()),
+            progress: !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
             out: Some(
                 self.out
                     .clone()
@@ -147,6 +150,24 @@ async fn ctrl_c() {
 }
 
 pub async fn train(args: TrainArgs) -> Result<()> {
+    let (summary, out) = train_in_process(args).await?;
+    if let Some(last) = summary.rows.last() {
+        println!(
+            "done: {} env steps, {} updates, version {}; last evaluation: return {:.1}, success {:.0}%, preference return {:.1}; curve in {}",
+            summary.env_steps,
+            summary.updates,
+            summary.policy_version,
+            last.eval_return_truth,
+            100.0 * last.eval_success_rate,
+            last.eval_return_human,
+            out.map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
+        );
+    }
+    Ok(())
+}
+
+/// Router, actors and learner in this process; the learner's summary and run folder.
+async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<PathBuf>)> {
     let world = args.world.config()?;
     let cfg = args
         .learn
@@ -196,19 +217,7 @@ pub async fn train(args: TrainArgs) -> Result<()> {
             Ok(Ok(())) => {}
         }
     }
-    if let Some(last) = summary.rows.last() {
-        println!(
-            "done: {} env steps, {} updates, version {}; last window: return {:.1}, success {:.0}%, preference return {:.1}; curve in {}",
-            summary.env_steps,
-            summary.updates,
-            summary.policy_version,
-            last.return_truth,
-            100.0 * last.success_rate,
-            last.return_human,
-            out.map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
-        );
-    }
-    Ok(())
+    Ok((summary, out))
 }
 
 pub async fn learner(args: TrainArgs) -> Result<()> {
@@ -246,10 +255,69 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 30)]
         steps: usize,
     },
+    /// End-to-end env steps per second of `pbrl train` (feeding, in-process router, no
+    /// evaluation) with 1 and 2 actors, for SAC and PPO.
+    Train {
+        /// Env steps per run (SAC's first 600 are random actions without updates).
+        #[arg(long, default_value_t = 20_000)]
+        steps: u64,
+    },
+}
+
+/// `pbrl train`'s arguments, parsed from a command line (for the benchmark).
+#[derive(clap::Parser, Debug)]
+struct TrainLine {
+    #[command(flatten)]
+    args: TrainArgs,
+}
+
+fn bench_train(steps: u64) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    println!(
+        "{:<5} {:>6} {:>10} {:>12} {:>10} {:>8}",
+        "algo", "actors", "env steps", "env steps/s", "updates/s", "wall s"
+    );
+    for algo in ["sac", "ppo"] {
+        for actors in [1u32, 2] {
+            let out = std::env::temp_dir().join(format!(
+                "pbrl-bench-train-{}-{algo}-{actors}",
+                std::process::id()
+            ));
+            let line = [
+                "train".to_string(),
+                format!("--algo={algo}"),
+                format!("--actors={actors}"),
+                format!("--steps={steps}"),
+                format!("--log-every={steps}"),
+                "--eval-episodes=0".into(),
+                format!("--run=bench-{algo}-{actors}"),
+                format!("--out={}", out.display()),
+            ];
+            let TrainLine { mut args } = <TrainLine as clap::Parser>::try_parse_from(line)?;
+            args.learn.quiet = true;
+            let start = std::time::Instant::now();
+            let (summary, _) = runtime.block_on(train_in_process(args))?;
+            let wall = start.elapsed().as_secs_f64();
+            let _ = std::fs::remove_dir_all(&out);
+            println!(
+                "{algo:<5} {actors:>6} {:>10} {:>12.0} {:>10.1} {wall:>8.1}",
+                summary.env_steps,
+                summary.env_steps as f64 / wall,
+                summary.updates as f64 / wall,
+            );
+        }
+    }
+    Ok(())
 }
 
 pub fn bench(cmd: BenchCommand) -> Result<()> {
-    let BenchCommand::Learner { steps } = cmd;
+    let steps = match cmd {
+        BenchCommand::Learner { steps } => steps,
+        BenchCommand::Train { steps } => return bench_train(steps),
+    };
     println!(
         "{:<8} {:>10} {:>8} {:>12} {:>12}",
         "threads", "hidden", "batch", "SAC ms/step", "PPO ms/mb"
