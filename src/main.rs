@@ -33,13 +33,36 @@ enum Command {
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
     let command = Cli::parse().command;
+    // The log goes to stderr and, for a run, to its folder's `train.log` (appended).
+    let log_file = match &command {
+        Command::Train(a) | Command::Learner(a) => {
+            let dir = a.learn.out_dir();
+            std::fs::create_dir_all(&dir)?;
+            let path = pbrl_learner::run_folder::RunFolder::new(dir).log();
+            Some(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(&path)
+                    .map_err(|e| anyhow::anyhow!("opening {}: {e}", path.display()))?,
+            )
+        }
+        _ => None,
+    };
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    tracing_subscriber::registry()
+        .with(filter)
+        .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr))
+        .with(log_file.map(|f| {
+            tracing_subscriber::fmt::layer()
+                .with_ansi(false)
+                .with_writer(std::sync::Mutex::new(f))
+        }))
+        .init();
     // NOTE: candle's elementwise pool spins while its workers run; beside the actors and
     // zenoh, on 2 cores, a descheduled worker stalls the learner for whole time slices (a
     // SAC run next to another went at 60 env steps/s). It gains nothing at these sizes

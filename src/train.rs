@@ -8,6 +8,7 @@ use pbrl_actor::cli::WorldArgs;
 use pbrl_actor::runner::{self, ActorConfig, Task, POINT_HORIZON};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_learner::ppo::PpoConfig;
+use pbrl_learner::run_folder::RunFolder;
 use pbrl_learner::sac::SacConfig;
 use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
 
@@ -40,6 +41,20 @@ pub struct LearnArgs {
     /// row of the learning curve; 0 turns evaluation off.
     #[arg(long, default_value_t = 10)]
     pub eval_episodes: u32,
+    /// Env steps between checkpoints (each at the next weights publication after the mark;
+    /// 0: only at the end or on a stop).
+    #[arg(long, default_value_t = 50_000)]
+    pub checkpoint_every: u64,
+    /// Checkpoints kept (the newest).
+    #[arg(long, default_value_t = 3)]
+    pub keep_checkpoints: usize,
+    /// Deterministic mode (use with one actor): each weights version runs exactly its
+    /// share of episodes and the next waits for them, so a run is a function of its seed.
+    #[arg(long)]
+    pub sync: bool,
+    /// Start over even if the run folder holds a run (default: resume it).
+    #[arg(long)]
+    pub fresh: bool,
     /// No progress bar even on a terminal.
     #[arg(long)]
     pub quiet: bool,
@@ -74,6 +89,10 @@ impl LearnArgs {
             ppo.hidden = vec![512, 512];
         }
         if self.task == Task::Point {
+            // NOTE: the test task learns in seconds with small networks.
+            sac.hidden = vec![64, 64];
+            sac.batch = 64;
+            ppo.hidden = vec![64, 64];
             ppo.rollout_steps = 32 * POINT_HORIZON as usize;
         }
         LearnerConfig {
@@ -90,13 +109,40 @@ impl LearnArgs {
             actors,
             episode_steps,
             eval_episodes: self.eval_episodes,
+            checkpoint_every: self.checkpoint_every,
+            keep_checkpoints: self.keep_checkpoints,
+            sync: self.sync,
             progress: !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
-            out: Some(
-                self.out
-                    .clone()
-                    .unwrap_or_else(|| PathBuf::from("runs").join(self.run_id())),
-            ),
+            out: Some(self.out_dir()),
         }
+    }
+
+    /// The run folder.
+    pub fn out_dir(&self) -> PathBuf {
+        self.out
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("runs").join(self.run_id()))
+    }
+
+    /// Prepare the run folder: cleared with `--fresh`. Returns false when the run there
+    /// has already reached this total (nothing to do).
+    fn prepare(&self) -> Result<bool> {
+        let folder = RunFolder::new(self.out_dir());
+        if self.fresh {
+            folder.clear()?;
+            return Ok(true);
+        }
+        if let Some(steps) = folder.finished_steps()? {
+            if steps >= self.steps {
+                println!(
+                    "{}: finished at {steps} env steps (asked for {}); nothing to do (--fresh starts over)",
+                    folder.root.display(),
+                    self.steps
+                );
+                return Ok(false);
+            }
+        }
+        Ok(true)
     }
 }
 
@@ -142,15 +188,46 @@ fn episode_steps(task: Task, world: &pbrl_actor::WorldConfig) -> u32 {
     }
 }
 
-async fn ctrl_c() {
-    // NOTE: if the signal handler cannot be installed, run until done instead.
-    if tokio::signal::ctrl_c().await.is_err() {
-        std::future::pending::<()>().await;
+/// Resolves at the first SIGINT or SIGTERM (the learner then finishes its update, writes
+/// a checkpoint and stops the actors); a second signal exits at once.
+async fn stop_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    // NOTE: if the handlers cannot be installed, run until done instead.
+    let (Ok(mut term), Ok(mut int)) = (
+        signal(SignalKind::terminate()),
+        signal(SignalKind::interrupt()),
+    ) else {
+        return std::future::pending().await;
+    };
+    tokio::select! {
+        _ = term.recv() => {}
+        _ = int.recv() => {}
     }
+    tracing::warn!(
+        "stopping: finishing the update and writing a checkpoint; a second signal exits at once"
+    );
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = term.recv() => {}
+            _ = int.recv() => {}
+        }
+        eprintln!("second signal: exiting now");
+        std::process::exit(130);
+    });
 }
 
 pub async fn train(args: TrainArgs) -> Result<()> {
+    if !args.learn.prepare()? {
+        return Ok(());
+    }
     let (summary, out) = train_in_process(args).await?;
+    if summary.stopped {
+        println!(
+            "stopped at {} env steps; a checkpoint is written: run the same command to go on",
+            summary.env_steps
+        );
+        return Ok(());
+    }
     if let Some(last) = summary.rows.last() {
         println!(
             "done: {} env steps, {} updates, version {}; last evaluation: return {:.1}, success {:.0}%, preference return {:.1}; curve in {}",
@@ -208,7 +285,7 @@ async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<P
     }
     let session = ConnectArgs::connecting_to(&endpoint).open().await?;
     let out = cfg.out.clone();
-    let summary = service::run(cfg, session, ctrl_c()).await?;
+    let summary = service::run(cfg, session, stop_signal()).await?;
     let _ = tx.send(true);
     for a in actors {
         match a.await {
@@ -221,12 +298,15 @@ async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<P
 }
 
 pub async fn learner(args: TrainArgs) -> Result<()> {
+    if !args.learn.prepare()? {
+        return Ok(());
+    }
     let world = args.world.config()?;
     let cfg = args
         .learn
         .learner_config(args.actors, episode_steps(args.learn.task, &world));
     let session = args.connect.open().await?;
-    let summary = service::run(cfg, session, ctrl_c()).await?;
+    let summary = service::run(cfg, session, stop_signal()).await?;
     println!(
         "done: {} env steps, {} updates, version {}",
         summary.env_steps, summary.updates, summary.policy_version
@@ -243,7 +323,7 @@ pub async fn actor(args: ActorArgs) -> Result<()> {
         seed: args.seed,
     };
     let session = args.connect.open().await?;
-    runner::run(cfg, session, ctrl_c()).await
+    runner::run(cfg, session, stop_signal()).await
 }
 
 #[derive(clap::Subcommand, Debug)]

@@ -39,6 +39,9 @@ fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
         actors: 2,
         episode_steps: pbrl_actor::runner::POINT_HORIZON,
         eval_episodes: 0,
+        checkpoint_every: 0,
+        keep_checkpoints: 2,
+        sync: false,
         out: None,
         progress: false,
     }
@@ -165,11 +168,14 @@ async fn ppo_trains_only_on_the_current_version() {
     let curve = std::fs::read_to_string(dir.path().join("curve.csv")).unwrap();
     assert_eq!(curve.lines().count(), 1 + summary.rows.len());
     assert!(curve.starts_with("env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate"));
-    let manifest = std::fs::read_to_string(dir.path().join("checkpoint/checkpoint.json")).unwrap();
-    assert!(
-        manifest.contains(&format!("\"version\":{}", summary.policy_version)),
-        "{manifest}"
-    );
+    let folder = pbrl_learner::run_folder::RunFolder::new(dir.path());
+    let last = folder
+        .latest_checkpoint()
+        .unwrap()
+        .expect("a final checkpoint");
+    assert_eq!(last.manifest.version, summary.policy_version);
+    assert_eq!(last.manifest.env_steps, summary.env_steps);
+    assert!(folder.finished_steps().unwrap() >= Some(3_000));
     let (obs_dim, act_dim) = Task::Point.dims();
     let mut rng = rand::rngs::ThreadRng::default();
     let mut policy = pbrl_common::nets::Owned::build(&mut rng, |vb| {
@@ -178,7 +184,7 @@ async fn ppo_trains_only_on_the_current_version() {
     .unwrap();
     policy
         .varmap
-        .load(dir.path().join("checkpoint/policy.safetensors"))
+        .load(last.dir.join("policy.safetensors"))
         .unwrap();
     assert!(dir.path().join("config.json").exists());
     for a in [actor_a, actor_b] {

@@ -11,6 +11,8 @@ use rand_distr::StandardNormal;
 /// A policy with the observation normaliser it was trained with.
 pub struct Policy {
     pub version: u64,
+    /// Env steps the learner had consumed when it made these weights.
+    pub made_at: u64,
     net: Owned<GaussianPolicy>,
     norm: RunningNorm,
     obs_dim: usize,
@@ -68,6 +70,7 @@ impl Policy {
         norm.var = w.obs_var.iter().map(|x| *x as f64).collect();
         Ok(Self {
             version: w.version,
+            made_at: w.env_steps,
             net,
             norm,
             obs_dim,

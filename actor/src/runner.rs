@@ -58,6 +58,20 @@ pub struct ActorConfig {
     pub seed: u64,
 }
 
+/// The seed of episode `k` that actor `actor` runs with weights made at `made_at` env
+/// steps, in a run of seed `run_seed` (a SplitMix64 mix; below 2^63, apart from the
+/// evaluation seeds).
+pub fn episode_seed(run_seed: u64, actor: u32, made_at: u64, k: u32) -> u64 {
+    let mut z = run_seed;
+    for x in [actor as u64, made_at, k as u64] {
+        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15).wrapping_add(x);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+    }
+    z >> 1
+}
+
 /// One episode of `task` with `policy` (the mean action when `deterministic`).
 fn episode(
     world: Option<&mut FeedingWorld>,
@@ -166,9 +180,6 @@ pub async fn run(
         Task::Feeding => Some(FeedingWorld::new(cfg.world.clone())?),
         Task::Point => None,
     };
-    let mut rng = ChaCha8Rng::seed_from_u64(
-        cfg.seed ^ (0x9e37_79b9_7f4a_7c15u64.wrapping_mul(cfg.id as u64 + 1)),
-    );
     let mut episodes: u64 = 0;
     let mut on_version = 0u32;
     loop {
@@ -207,12 +218,14 @@ pub async fn run(
                 }
             }
         }
+        // Seeds follow from the run's seed, the actor, the env steps the weights were made
+        // at and the episode's number on them: a resumed run (whose versions count on from
+        // a gap) plays the same episodes as one never stopped, and no two episodes of a
+        // run share a seed. Sampling noise restarts from the episode's seed.
+        let seed = episode_seed(cfg.seed, cfg.id, policy.made_at, on_version);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa0_c710_u64);
         on_version += 1;
-        // Seeds: actor i of the run plays seeds seed * 2^32 + i + k * 2^16 (k = episode).
-        let seed = (cfg.seed << 32) ^ (cfg.id as u64) ^ (episodes << 16);
         episodes += 1;
-        // NOTE: an episode is CPU work (a few ms for feeding); run it without holding up
-        // the runtime's other tasks.
         let trajectory =
             tokio::task::block_in_place(|| episode(world.as_mut(), &policy, seed, &mut rng, false))
                 .with_context(|| format!("actor {}: episode seed {seed}", cfg.id))?;

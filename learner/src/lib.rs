@@ -4,5 +4,7 @@
 pub mod bench;
 pub mod optim;
 pub mod ppo;
+pub mod run_folder;
 pub mod sac;
 pub mod service;
+pub mod state;

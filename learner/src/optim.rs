@@ -19,7 +19,66 @@ pub struct Adam {
     pub eps: f64,
 }
 
+/// Adam's moments and step count, for checkpoints.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AdamState {
+    pub t: u64,
+    pub m: Vec<pbrl_common::wire::Tensor>,
+    pub v: Vec<pbrl_common::wire::Tensor>,
+}
+
+fn to_wire(name: &str, t: &Tensor) -> Result<pbrl_common::wire::Tensor> {
+    Ok(pbrl_common::wire::Tensor {
+        name: name.to_string(),
+        shape: t.dims().to_vec(),
+        data: t.flatten_all()?.to_vec1::<f32>()?,
+    })
+}
+
 impl Adam {
+    /// The moments and step count.
+    pub fn state(&self) -> Result<AdamState> {
+        let named = |ts: &[Tensor]| -> Result<Vec<_>> {
+            self.vars
+                .iter()
+                .zip(ts)
+                .map(|((name, _), t)| to_wire(name, t))
+                .collect()
+        };
+        Ok(AdamState {
+            t: self.t,
+            m: named(&self.m)?,
+            v: named(&self.v)?,
+        })
+    }
+
+    /// Take the moments and step count of `s`, which must name the same variables with
+    /// the same shapes.
+    pub fn restore(&mut self, s: &AdamState) -> Result<()> {
+        if s.m.len() != self.vars.len() || s.v.len() != self.vars.len() {
+            candle_core::bail!(
+                "optimiser state holds {} moments for {} variables",
+                s.m.len(),
+                self.vars.len()
+            );
+        }
+        for (i, (name, var)) in self.vars.iter().enumerate() {
+            for (src, dst) in [(&s.m[i], &mut self.m[i]), (&s.v[i], &mut self.v[i])] {
+                if src.name != *name || src.shape != var.dims() {
+                    candle_core::bail!(
+                        "optimiser state has {} {:?} where {name} {:?} is expected",
+                        src.name,
+                        src.shape,
+                        var.dims()
+                    );
+                }
+                *dst = Tensor::from_slice(&src.data, var.shape(), var.device())?;
+            }
+        }
+        self.t = s.t;
+        Ok(())
+    }
+
     pub fn new(vars: Vec<(String, Var)>, lr: f64) -> Result<Self> {
         let m = vars
             .iter()

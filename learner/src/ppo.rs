@@ -15,7 +15,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::optim::{clip_grad_norm, Adam};
+use crate::optim::{clip_grad_norm, Adam, AdamState};
+use crate::state::RngState;
 
 /// PPO's settings (defaults from `shared/method.md`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -136,7 +137,50 @@ pub struct Ppo {
     pub updates: u64,
 }
 
+/// PPO's state beside its networks (the learning-rate and clip schedules follow from
+/// `env_steps` and the run's budget).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PpoState {
+    pub pi_opt: AdamState,
+    pub v_opt: AdamState,
+    pub norm: RunningNorm,
+    pub rng: RngState,
+    pub env_steps: u64,
+    pub updates: u64,
+}
+
 impl Ppo {
+    /// The networks by name (for checkpoints).
+    pub fn networks(&self) -> [(&'static str, &candle_nn::VarMap); 2] {
+        [
+            ("policy", &self.policy.varmap),
+            ("value", &self.value.varmap),
+        ]
+    }
+
+    /// Optimisers, normaliser, generator and counters (for checkpoints).
+    pub fn state(&self) -> Result<PpoState> {
+        Ok(PpoState {
+            pi_opt: self.pi_opt.state()?,
+            v_opt: self.v_opt.state()?,
+            norm: self.norm.clone(),
+            rng: RngState::of(&self.rng),
+            env_steps: self.env_steps,
+            updates: self.updates,
+        })
+    }
+
+    /// Continue from `s` (the networks are restored apart).
+    pub fn restore(&mut self, s: &PpoState) -> Result<()> {
+        self.pi_opt.restore(&s.pi_opt)?;
+        self.v_opt.restore(&s.v_opt)?;
+        self.norm = s.norm.clone();
+        self.rng = s.rng.restore();
+        self.env_steps = s.env_steps;
+        self.updates = s.updates;
+        Ok(())
+    }
+
     pub fn new(cfg: PpoConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let h = cfg.hidden.clone();

@@ -14,7 +14,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
-use crate::optim::Adam;
+use crate::optim::{Adam, AdamState};
+use crate::state::RngState;
 
 /// SAC's settings (defaults from `shared/method.md`, at the 256x256 size of SB3 and
 /// CleanRL; the authors' 512x512 / batch 512 is the `paper` preset).
@@ -92,6 +93,8 @@ pub struct Replay {
     capacity: usize,
     len: usize,
     next: usize,
+    /// Transitions pushed since the start (the buffer holds the last `len` of them).
+    pub total: u64,
     obs: Vec<f32>,
     act: Vec<f32>,
     rew: Vec<f32>,
@@ -107,6 +110,7 @@ impl Replay {
             capacity,
             len: 0,
             next: 0,
+            total: 0,
             obs: Vec::new(),
             act: Vec::new(),
             rew: Vec::new(),
@@ -140,6 +144,82 @@ impl Replay {
             self.done[i] = done as u8 as f32;
         }
         self.next = (self.next + 1) % self.capacity;
+        self.total += 1;
+    }
+
+    /// Numbers per transition in [`Replay::rows`]: obs, act, reward, next obs, done.
+    pub fn row_len(&self) -> usize {
+        2 * self.obs_dim + self.act_dim + 2
+    }
+
+    /// Transitions `start..end` (counted from the start of the run; all still held), one
+    /// row of [`Replay::row_len`] numbers each.
+    pub fn rows(&self, start: u64, end: u64) -> Vec<f32> {
+        assert!(
+            start <= end && end <= self.total && start + self.len as u64 >= self.total,
+            "transitions {start}..{end} are not all in the buffer"
+        );
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let mut out = Vec::with_capacity((end - start) as usize * self.row_len());
+        for n in start..end {
+            // NOTE: transition n sits at (n mod capacity): the ring fills in order.
+            let i = (n % self.capacity as u64) as usize;
+            out.extend_from_slice(&self.obs[i * o..(i + 1) * o]);
+            out.extend_from_slice(&self.act[i * a..(i + 1) * a]);
+            out.push(self.rew[i]);
+            out.extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
+            out.push(self.done[i]);
+        }
+        out
+    }
+
+    /// Refill an empty buffer from rows of transitions `start..` (as [`Replay::rows`] lays
+    /// them out), each at the place it had: the same buffer, the same minibatches.
+    pub fn restore(&mut self, start: u64, rows: &[f32]) -> Result<()> {
+        let n = (rows.len() / self.row_len()) as u64;
+        let end = start + n;
+        if self.total != 0 || !rows.len().is_multiple_of(self.row_len()) {
+            candle_core::bail!("replay restore needs an empty buffer and whole rows");
+        }
+        if start > end.saturating_sub(self.capacity as u64) {
+            candle_core::bail!(
+                "replay rows {start}..{end} do not cover the buffer's last {} transitions",
+                self.capacity
+            );
+        }
+        if end <= self.capacity as u64 {
+            self.push_rows(rows);
+            return Ok(());
+        }
+        // A full ring: transition k sits at k mod capacity.
+        let (o, a, c) = (self.obs_dim, self.act_dim, self.capacity);
+        self.obs = vec![0.0; c * o];
+        self.act = vec![0.0; c * a];
+        self.rew = vec![0.0; c];
+        self.next_obs = vec![0.0; c * o];
+        self.done = vec![0.0; c];
+        self.len = c;
+        let skip = (end - c as u64 - start) as usize;
+        self.total = end - c as u64;
+        self.next = (self.total % c as u64) as usize;
+        for r in rows.chunks_exact(self.row_len()).skip(skip) {
+            let (obs, rest) = r.split_at(o);
+            let (act, rest) = rest.split_at(a);
+            let (next_obs, done) = rest[1..].split_at(o);
+            self.push(obs, act, rest[0], next_obs, done[0] > 0.5);
+        }
+        Ok(())
+    }
+
+    /// Push rows as [`Replay::rows`] lays them out.
+    pub fn push_rows(&mut self, rows: &[f32]) {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        for r in rows.chunks_exact(self.row_len()) {
+            let (obs, rest) = r.split_at(o);
+            let (act, rest) = rest.split_at(a);
+            let (next_obs, done) = rest[1..].split_at(o);
+            self.push(obs, act, rest[0], next_obs, done[0] > 0.5);
+        }
     }
 
     /// A uniform minibatch: (obs, act, rew [n,1], next_obs, done [n,1]).
@@ -192,6 +272,18 @@ pub struct Sac {
     pub updates: u64,
 }
 
+/// SAC's state beside its networks and replay buffer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SacState {
+    pub pi_opt: AdamState,
+    pub q_opt: AdamState,
+    pub alpha_opt: AdamState,
+    pub log_alpha: f32,
+    pub rng: RngState,
+    pub env_steps: u64,
+    pub updates: u64,
+}
+
 fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
     pbrl_common::nets::import(to, &export(from)?)
 }
@@ -227,14 +319,39 @@ impl Sac {
         })
     }
 
-    /// The critics' variables (for checkpoints).
-    pub fn critic_varmap(&self) -> &VarMap {
-        &self.critic.varmap
+    /// The networks by name (for checkpoints).
+    pub fn networks(&self) -> [(&'static str, &VarMap); 3] {
+        [
+            ("policy", &self.policy.varmap),
+            ("critic", &self.critic.varmap),
+            ("target_critic", &self.target.varmap),
+        ]
     }
 
-    /// The target critics' variables (for checkpoints).
-    pub fn target_varmap(&self) -> &VarMap {
-        &self.target.varmap
+    /// Optimisers, temperature, generator and counters (for checkpoints).
+    pub fn state(&self) -> Result<SacState> {
+        Ok(SacState {
+            pi_opt: self.pi_opt.state()?,
+            q_opt: self.q_opt.state()?,
+            alpha_opt: self.alpha_opt.state()?,
+            log_alpha: self.log_alpha.as_tensor().to_vec1::<f32>()?[0],
+            rng: RngState::of(&self.rng),
+            env_steps: self.env_steps,
+            updates: self.updates,
+        })
+    }
+
+    /// Continue from `s` (the networks and replay buffer are restored apart).
+    pub fn restore(&mut self, s: &SacState) -> Result<()> {
+        self.pi_opt.restore(&s.pi_opt)?;
+        self.q_opt.restore(&s.q_opt)?;
+        self.alpha_opt.restore(&s.alpha_opt)?;
+        self.log_alpha
+            .set(&Tensor::from_slice(&[s.log_alpha], 1, &Device::Cpu)?)?;
+        self.rng = s.rng.restore();
+        self.env_steps = s.env_steps;
+        self.updates = s.updates;
+        Ok(())
     }
 
     pub fn alpha(&self) -> Result<f64> {
@@ -401,6 +518,34 @@ mod tests {
         let g = loss.backward().unwrap();
         let g = g.get(&la).unwrap().to_vec1::<f32>().unwrap();
         assert!((g[0] - 6.0).abs() < 1e-6, "{g:?}");
+    }
+
+    #[test]
+    fn a_replay_buffer_restored_from_its_rows_is_the_same_buffer() {
+        let mut a = Replay::new(2, 1, 5);
+        for k in 0..13 {
+            let x = k as f32;
+            a.push(&[x, -x], &[0.5 * x], x * 10.0, &[x + 1.0, 0.0], k % 4 == 0);
+        }
+        // The last 5 transitions (8..13), restored from rows 6..13.
+        let mut b = Replay::new(2, 1, 5);
+        b.restore(6, &a.rows(6, 13)).unwrap();
+        assert_eq!((b.len, b.next, b.total), (a.len, a.next, a.total));
+        assert_eq!((&b.obs, &b.act, &b.rew), (&a.obs, &a.act, &a.rew));
+        assert_eq!((&b.next_obs, &b.done), (&a.next_obs, &a.done));
+        // Not full yet: rows from the start.
+        let mut d = Replay::new(2, 1, 50);
+        for k in 0..13 {
+            d.push(&[k as f32, 1.0], &[0.0], 1.0, &[0.0, 2.0], false);
+        }
+        let mut c = Replay::new(2, 1, 50);
+        c.restore(0, &d.rows(0, 13)).unwrap();
+        assert_eq!(
+            (c.len, c.next, c.total, &c.obs),
+            (d.len, d.next, d.total, &d.obs)
+        );
+        // Rows that do not reach back far enough are refused.
+        assert!(Replay::new(2, 1, 5).restore(9, &a.rows(9, 13)).is_err());
     }
 
     #[test]

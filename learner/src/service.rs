@@ -10,14 +10,16 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use pbrl_common::bus::{put_message, MessageSubscriber, TrajectorySubscriber, WeightsServer};
 use pbrl_common::nets::export;
+use pbrl_common::nets::import;
 use pbrl_common::wire::{self, Body, EvalRequest, EvalResult, Weights};
 use pbrl_common::{Keys, RunningNorm, StepRewards, Trajectory};
 use serde::{Deserialize, Serialize};
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Session;
 
-use crate::ppo::{Ppo, PpoConfig};
-use crate::sac::{Sac, SacConfig};
+use crate::ppo::{Ppo, PpoConfig, PpoState};
+use crate::run_folder::{FileSum, RunFolder};
+use crate::sac::{Sac, SacConfig, SacState};
 
 /// The RL backbone.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -70,7 +72,15 @@ pub struct LearnerConfig {
     /// Deterministic evaluation episodes at each row of the curve (0: none; the row then
     /// has only the training episodes' figures).
     pub eval_episodes: u32,
-    /// Run folder for the curve (`curve.csv`) and the resolved config; none in tests.
+    /// Env steps between checkpoints (taken at the next weights publication after the
+    /// mark); 0: only when the run ends or is stopped.
+    pub checkpoint_every: u64,
+    /// Checkpoints kept (the newest).
+    pub keep_checkpoints: usize,
+    /// Deterministic mode: each version runs exactly its share of episodes and the next
+    /// version waits for all of them (with one actor, a run is a function of its seed).
+    pub sync: bool,
+    /// Run folder (`run_folder` has its layout); none in tests.
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal) instead of periodic log lines.
     #[serde(skip)]
@@ -78,7 +88,7 @@ pub struct LearnerConfig {
 }
 
 /// Seeds of the evaluation episodes: the same at every row, apart from training seeds
-/// (those are `seed * 2^32 ^ actor ^ episode * 2^16`, below 2^63 for any sane run).
+/// (`actor::runner::episode_seed`, below 2^63).
 pub const EVAL_SEED_BASE: u64 = 1 << 63;
 
 /// An evaluation unanswered this long is asked of another actor.
@@ -89,7 +99,7 @@ const EVAL_TRIES: u32 = 3;
 
 /// One row of the learning curve: the training episodes since the previous row, and the
 /// deterministic evaluation episodes of the weights at `env_steps` (NaN when not run).
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CurveRow {
     pub env_steps: u64,
     pub wall_s: f64,
@@ -160,6 +170,8 @@ pub struct Summary {
     pub episodes_by_actor: std::collections::BTreeMap<u32, u64>,
     /// The policy version of each actor's first episode.
     pub first_version_by_actor: std::collections::BTreeMap<u32, u64>,
+    /// The run was stopped (a signal) before its total.
+    pub stopped: bool,
 }
 
 enum Backbone {
@@ -168,13 +180,27 @@ enum Backbone {
 }
 
 /// Episode statistics accumulated between curve rows.
-#[derive(Default)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 struct Window {
     episodes: u64,
     truth: f64,
     success: f64,
     human: f64,
     task: f64,
+}
+
+/// Episodes each actor runs with the version published at `env_steps`: its share of the
+/// env steps that version is for (SAC: until the next publication, or the random steps;
+/// PPO: one rollout).
+fn version_share(cfg: &LearnerConfig, backbone: &Backbone, env_steps: u64) -> u64 {
+    let per_version = match backbone {
+        Backbone::Sac(s) if env_steps < s.cfg.random_steps => s.cfg.random_steps - env_steps,
+        Backbone::Sac(s) => cfg.publish_every * s.cfg.update_every,
+        Backbone::Ppo(p, _) => p.cfg.rollout_steps as u64,
+    };
+    per_version
+        .div_ceil(cfg.actors.max(1) as u64 * cfg.episode_steps.max(1) as u64)
+        .max(1)
 }
 
 fn weights_of(
@@ -184,14 +210,7 @@ fn weights_of(
     env_steps: u64,
 ) -> Result<Weights> {
     let (obs_dim, act_dim) = (cfg.obs_dim, cfg.act_dim);
-    // Flow control: each actor runs only its share of the env steps this version is for
-    // (SAC: until the next publication, or the random steps; PPO: one rollout), plus one.
-    let per_version = match backbone {
-        Backbone::Sac(s) if env_steps < s.cfg.random_steps => s.cfg.random_steps - env_steps,
-        Backbone::Sac(s) => cfg.publish_every * s.cfg.update_every,
-        Backbone::Ppo(p, _) => p.cfg.rollout_steps as u64,
-    };
-    let share = per_version.div_ceil(cfg.actors.max(1) as u64 * cfg.episode_steps.max(1) as u64);
+    let share = version_share(cfg, backbone, env_steps);
     let (tensors, norm, random) = match backbone {
         Backbone::Sac(s) => (
             export(&s.policy.varmap)?,
@@ -216,55 +235,10 @@ fn weights_of(
         obs_var: norm.var.iter().map(|x| *x as f32).collect(),
         obs_clip: norm.clip as f32,
         random_actions: random,
-        episodes_per_actor: (share + 1).min(u32::MAX as u64) as u32,
+        // NOTE: one more than the share keeps actors busy while the next version comes;
+        // the deterministic mode runs exactly the share.
+        episodes_per_actor: (share + (!cfg.sync) as u64).min(u32::MAX as u64) as u32,
     })
-}
-
-/// Write `varmap` as `<dir>/<name>.safetensors` atomically: a temporary file, synced, then
-/// renamed over the old one.
-fn save_atomic(dir: &std::path::Path, name: &str, varmap: &candle_nn::VarMap) -> Result<()> {
-    let tmp = dir.join(format!("{name}.safetensors.tmp"));
-    varmap
-        .save(&tmp)
-        .with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::File::open(&tmp)
-        .and_then(|f| f.sync_all())
-        .with_context(|| format!("syncing {}", tmp.display()))?;
-    let dst = dir.join(format!("{name}.safetensors"));
-    std::fs::rename(&tmp, &dst)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), dst.display()))
-}
-
-/// The networks of the run, under `<out>/checkpoint/`, with `checkpoint.json` (version,
-/// env steps, updates) written last. (Full checkpoints for resuming, with optimiser state,
-/// replay buffer and RNGs, come with run resume.)
-fn save_networks(
-    out: &std::path::Path,
-    backbone: &Backbone,
-    version: u64,
-    env_steps: u64,
-    updates: u64,
-) -> Result<()> {
-    let dir = out.join("checkpoint");
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    match backbone {
-        Backbone::Sac(s) => {
-            save_atomic(&dir, "policy", &s.policy.varmap)?;
-            save_atomic(&dir, "critic", s.critic_varmap())?;
-            save_atomic(&dir, "target_critic", s.target_varmap())?;
-        }
-        Backbone::Ppo(p, _) => {
-            save_atomic(&dir, "policy", &p.policy.varmap)?;
-            save_atomic(&dir, "value", &p.value.varmap)?;
-        }
-    }
-    let manifest =
-        serde_json::json!({ "version": version, "env_steps": env_steps, "updates": updates });
-    let tmp = dir.join("checkpoint.json.tmp");
-    std::fs::write(&tmp, manifest.to_string())
-        .with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, dir.join("checkpoint.json"))
-        .with_context(|| format!("renaming {}", tmp.display()))
 }
 
 /// A row waiting for its evaluation.
@@ -278,6 +252,8 @@ struct Pending {
 /// The learning curve: rows in env-step order, each written once its evaluation is in.
 struct Curve {
     file: Option<std::fs::File>,
+    /// Rows in the file, over the whole run.
+    written: u64,
     pending: VecDeque<Pending>,
     bar: Option<indicatif::ProgressBar>,
 }
@@ -310,6 +286,7 @@ impl Curve {
             writeln!(f, "{}", row.csv())?;
             f.flush()?;
         }
+        self.written += 1;
         summary.rows.push(row);
         Ok(())
     }
@@ -450,13 +427,325 @@ fn pick_result(b: Body) -> Option<EvalResult> {
     }
 }
 
-/// Train until `total_steps` env steps or `shutdown`; then tell the actors to stop.
+/// The learner loop's counters and bookkeeping: with the networks, optimisers, generators
+/// and replay buffer, everything a resumed run needs.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+struct Progress {
+    version: u64,
+    env_steps: u64,
+    updates: u64,
+    since_publish: u64,
+    /// Episodes of the current version received (deterministic mode).
+    version_episodes: u64,
+    /// Env steps the current version was made at.
+    weights_env_steps: u64,
+    next_row: u64,
+    next_checkpoint: u64,
+    window: Window,
+    last_losses: [f64; 3],
+    /// Wall time of the run in earlier processes.
+    wall_s: f64,
+    rows_written: u64,
+    stale: u64,
+}
+
+#[derive(Serialize, Deserialize)]
+enum BackboneState {
+    Sac(SacState),
+    Ppo(PpoState),
+}
+
+/// A checkpoint's `state.bin`.
+#[derive(Serialize, Deserialize)]
+struct Saved {
+    /// The config as JSON (for a reader; the run folder's `config.json` is the one used).
+    config: String,
+    progress: Progress,
+    /// Rows made but not written yet, with their evaluation requests.
+    pending: Vec<(CurveRow, EvalRequest)>,
+    backbone: BackboneState,
+}
+
+/// Fields of the config that may change when a run is resumed.
+pub const RESUMABLE_FIELDS: &[&str] = &[
+    "run",
+    "total_steps",
+    "actors",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "log_every",
+    "eval_episodes",
+    "out",
+];
+
+/// Refuse a resume whose config contradicts the stored one, naming the field and both
+/// values.
+pub fn check_resume(stored: &serde_json::Value, new: &serde_json::Value) -> Result<()> {
+    fn walk(path: &str, a: &serde_json::Value, b: &serde_json::Value) -> Result<()> {
+        match (a, b) {
+            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                for k in keys {
+                    let sub = if path.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{path}.{k}")
+                    };
+                    if path.is_empty() && RESUMABLE_FIELDS.contains(&k.as_str()) {
+                        continue;
+                    }
+                    let null = serde_json::Value::Null;
+                    walk(&sub, x.get(k).unwrap_or(&null), y.get(k).unwrap_or(&null))?;
+                }
+                Ok(())
+            }
+            _ if a == b => Ok(()),
+            _ => anyhow::bail!(
+                "cannot resume: {path} is {a} in the stored run and {b} now (start over with --fresh, or change only {})",
+                RESUMABLE_FIELDS.join(", ")
+            ),
+        }
+    }
+    walk("", stored, new)
+}
+
+impl Backbone {
+    fn networks(&self) -> Vec<(&'static str, &candle_nn::VarMap)> {
+        match self {
+            Backbone::Sac(s) => s.networks().to_vec(),
+            Backbone::Ppo(p, _) => p.networks().to_vec(),
+        }
+    }
+}
+
+/// The start of a replay segment's range, from its name.
+fn segment_range(s: &FileSum) -> Option<(u64, u64)> {
+    let name = std::path::Path::new(&s.path).file_stem()?.to_str()?;
+    let (a, b) = name.split_once('-')?;
+    Some((a.parse().ok()?, b.parse().ok()?))
+}
+
+/// Write a checkpoint: the SAC transitions since the last one as a new replay segment,
+/// then networks, state and manifest.
+fn write_checkpoint(
+    folder: &RunFolder,
+    cfg: &LearnerConfig,
+    backbone: &Backbone,
+    progress: &Progress,
+    curve: &Curve,
+    segments: &mut Vec<FileSum>,
+) -> Result<()> {
+    let start = Instant::now();
+    let state = match backbone {
+        Backbone::Sac(sac) => {
+            let total = sac.replay.total;
+            let held_from = total - sac.replay.len() as u64;
+            let from = segments
+                .last()
+                .and_then(segment_range)
+                .map_or(0, |(_, end)| end)
+                .max(held_from);
+            if total > from {
+                let rows = sac.replay.rows(from, total);
+                segments.push(folder.write_replay_segment(from, total, &rows)?);
+            }
+            // Segments wholly out of the buffer are no longer needed.
+            segments.retain(|s| segment_range(s).is_some_and(|(_, end)| end > held_from));
+            BackboneState::Sac(sac.state()?)
+        }
+        Backbone::Ppo(ppo, _) => BackboneState::Ppo(ppo.state()?),
+    };
+    let saved = Saved {
+        config: serde_json::to_string(cfg)?,
+        progress: Progress {
+            rows_written: curve.written,
+            wall_s: progress.wall_s,
+            ..progress.clone()
+        },
+        pending: curve
+            .pending
+            .iter()
+            .map(|p| (p.row.clone(), p.request.clone()))
+            .collect(),
+        backbone: state,
+    };
+    let bytes = bincode::serde::encode_to_vec(&saved, bincode::config::standard())?;
+    folder.write_checkpoint(
+        progress.env_steps,
+        progress.version,
+        &backbone.networks(),
+        &bytes,
+        segments.clone(),
+        cfg.keep_checkpoints,
+    )?;
+    let replay_bytes: u64 = segments.iter().map(|s| s.bytes).sum();
+    tracing::info!(
+        env_steps = progress.env_steps,
+        version = progress.version,
+        ms = start.elapsed().as_millis() as u64,
+        state_bytes = bytes.len(),
+        replay_bytes,
+        "checkpoint written"
+    );
+    Ok(())
+}
+
+/// Open the run folder: a new run writes its config and curve header; a folder that holds
+/// a run resumes from its newest complete checkpoint. Returns the curve file, the saved
+/// state (if resuming) and the replay segments.
+fn open_folder(
+    folder: &RunFolder,
+    cfg: &LearnerConfig,
+    backbone: &mut Backbone,
+) -> Result<(std::fs::File, Option<Saved>, Vec<FileSum>)> {
+    let config = serde_json::to_value(cfg)?;
+    if folder.holds_run() {
+        let text = std::fs::read_to_string(folder.config())
+            .with_context(|| format!("reading {}", folder.config().display()))?;
+        let stored: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("parsing {}", folder.config().display()))?;
+        check_resume(&stored, &config)?;
+        match folder.latest_checkpoint()? {
+            Some(c) => {
+                let bytes = folder.read(&c, "state.bin")?;
+                let (saved, _): (Saved, usize) =
+                    bincode::serde::decode_from_slice(&bytes, bincode::config::standard())
+                        .with_context(|| format!("decoding {}/state.bin", c.dir.display()))?;
+                for (name, varmap) in backbone.networks() {
+                    let path = c.dir.join(format!("{name}.safetensors"));
+                    let tensors = candle_core::safetensors::load(&path, &candle_core::Device::Cpu)
+                        .with_context(|| format!("reading {}", path.display()))?;
+                    let tensors: Vec<wire::Tensor> = tensors
+                        .into_iter()
+                        .map(|(name, t)| {
+                            Ok(wire::Tensor {
+                                name,
+                                shape: t.dims().to_vec(),
+                                data: t.flatten_all()?.to_vec1::<f32>()?,
+                            })
+                        })
+                        .collect::<Result<_>>()?;
+                    import(varmap, &tensors)
+                        .with_context(|| format!("loading {}", path.display()))?;
+                }
+                match (&mut *backbone, &saved.backbone) {
+                    (Backbone::Sac(sac), BackboneState::Sac(s)) => {
+                        sac.restore(s)?;
+                        let rows = folder.read_replay(&c.manifest.replay)?;
+                        let from = c
+                            .manifest
+                            .replay
+                            .first()
+                            .and_then(segment_range)
+                            .map_or(0, |r| r.0);
+                        sac.replay.restore(from, &rows)?;
+                    }
+                    (Backbone::Ppo(ppo, _), BackboneState::Ppo(s)) => ppo.restore(s)?,
+                    _ => anyhow::bail!("checkpoint {} is of another algorithm", c.dir.display()),
+                }
+                // The curve keeps the rows written before the checkpoint; later ones are
+                // made again.
+                let curve = std::fs::read_to_string(folder.curve())
+                    .with_context(|| format!("reading {}", folder.curve().display()))?;
+                let keep: Vec<&str> = curve
+                    .lines()
+                    .take(1 + saved.progress.rows_written as usize)
+                    .collect();
+                if keep.len() != 1 + saved.progress.rows_written as usize {
+                    anyhow::bail!(
+                        "{} has {} rows, the checkpoint counts {}",
+                        folder.curve().display(),
+                        keep.len().saturating_sub(1),
+                        saved.progress.rows_written
+                    );
+                }
+                let mut text = keep.join("\n");
+                text.push('\n');
+                folder.write_atomic(&folder.curve(), text.as_bytes())?;
+                folder.write_atomic(
+                    &folder.config(),
+                    serde_json::to_string_pretty(cfg)?.as_bytes(),
+                )?;
+                let file = std::fs::OpenOptions::new()
+                    .append(true)
+                    .open(folder.curve())
+                    .with_context(|| format!("opening {}", folder.curve().display()))?;
+                tracing::info!(
+                    checkpoint = %c.dir.display(),
+                    env_steps = saved.progress.env_steps,
+                    version = saved.progress.version,
+                    rows = saved.progress.rows_written,
+                    "resuming the run"
+                );
+                return Ok((file, Some(saved), c.manifest.replay));
+            }
+            None => tracing::warn!(
+                folder = %folder.root.display(),
+                "the folder holds a run but no complete checkpoint; starting it over"
+            ),
+        }
+    }
+    folder.clear()?;
+    folder.create()?;
+    folder.write_atomic(
+        &folder.config(),
+        serde_json::to_string_pretty(cfg)?.as_bytes(),
+    )?;
+    let path = folder.curve();
+    let mut f =
+        std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    writeln!(f, "{CURVE_HEADER}")?;
+    Ok((f, None, Vec::new()))
+}
+
+/// Train until `total_steps` env steps or `shutdown`; then write a checkpoint and tell the
+/// actors to stop. With a run folder that holds a run, it continues that run.
 pub async fn run(
     cfg: LearnerConfig,
     session: Session,
     shutdown: impl Future<Output = ()>,
 ) -> Result<Summary> {
     let keys = Keys::new(&cfg.run)?;
+    let (obs_dim, act_dim) = (cfg.obs_dim, cfg.act_dim);
+    let mut backbone = match cfg.algo {
+        Algo::Sac => Backbone::Sac(Box::new(Sac::new(cfg.sac.clone(), obs_dim, act_dim)?)),
+        Algo::Ppo => Backbone::Ppo(
+            Box::new(Ppo::new(cfg.ppo.clone(), obs_dim, act_dim)?),
+            Vec::new(),
+        ),
+    };
+    let folder = cfg.out.as_ref().map(RunFolder::new);
+    let (file, saved, mut segments) = match &folder {
+        Some(f) => {
+            let (file, saved, segments) = open_folder(f, &cfg, &mut backbone)?;
+            (Some(file), saved, segments)
+        }
+        None => (None, None, Vec::new()),
+    };
+    let every = |n: u64| if n == 0 { u64::MAX } else { n };
+    let (mut p, pending) = match saved {
+        Some(s) => {
+            let mut p = s.progress;
+            // NOTE: versions published after the checkpoint may still be held by actors;
+            // count on from above every version this run ever published.
+            p.version = p
+                .version
+                .max(folder.as_ref().map_or(0, |f| f.published_version()))
+                + 1;
+            (p, s.pending)
+        }
+        None => (
+            Progress {
+                version: 1,
+                next_row: cfg.log_every,
+                next_checkpoint: every(cfg.checkpoint_every),
+                ..Progress::default()
+            },
+            Vec::new(),
+        ),
+    };
+    let resumed_at = p.env_steps;
+
     let server = WeightsServer::new(&session, &keys).await?;
     let trajectories = TrajectorySubscriber::new(&session, &keys).await?;
     let eval_results = MessageSubscriber::new(&session, &keys, keys.all_eval_results()).await?;
@@ -465,21 +754,6 @@ pub async fn run(
         .congestion_control(CongestionControl::Block)
         .await
         .map_err(|e| anyhow::anyhow!("declaring the stop publisher: {e}"))?;
-    let file = match &cfg.out {
-        Some(dir) => {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("creating run folder {}", dir.display()))?;
-            let config = serde_json::to_string_pretty(&cfg)?;
-            std::fs::write(dir.join("config.json"), config)
-                .with_context(|| format!("writing {}/config.json", dir.display()))?;
-            let path = dir.join("curve.csv");
-            let mut f = std::fs::File::create(&path)
-                .with_context(|| format!("creating {}", path.display()))?;
-            writeln!(f, "{CURVE_HEADER}")?;
-            Some(f)
-        }
-        None => None,
-    };
     tracing::info!(config = %serde_json::to_string(&cfg)?, "learner starts");
     let bar = cfg.progress.then(|| {
         let bar = indicatif::ProgressBar::new(cfg.total_steps);
@@ -490,10 +764,13 @@ pub async fn run(
             .expect("the progress template is valid")
             .progress_chars("=> "),
         );
+        bar.set_position(p.env_steps.min(cfg.total_steps));
+        bar.reset_eta();
         bar
     });
     let mut curve = Curve {
         file,
+        written: p.rows_written,
         pending: VecDeque::new(),
         bar,
     };
@@ -501,30 +778,32 @@ pub async fn run(
     let seeds: Vec<u64> = (0..cfg.eval_episodes as u64)
         .map(|k| EVAL_SEED_BASE + k)
         .collect();
-
-    let (obs_dim, act_dim) = (cfg.obs_dim, cfg.act_dim);
-    let mut backbone = match cfg.algo {
-        Algo::Sac => Backbone::Sac(Box::new(Sac::new(cfg.sac.clone(), obs_dim, act_dim)?)),
-        Algo::Ppo => Backbone::Ppo(
-            Box::new(Ppo::new(cfg.ppo.clone(), obs_dim, act_dim)?),
-            Vec::new(),
-        ),
+    let publish = |backbone: &Backbone, p: &Progress| -> Result<Weights> {
+        if let Some(f) = &folder {
+            f.mark_version(p.version)?;
+        }
+        weights_of(&cfg, backbone, p.version, p.env_steps)
     };
-    let mut version = 1u64;
-    server
-        .publish(&weights_of(&cfg, &backbone, version, 0)?)
-        .await?;
+    server.publish(&publish(&backbone, &p)?).await?;
+    // Rows made before the checkpoint and not written: evaluated again.
+    for (row, mut request) in pending {
+        request.actor = 0;
+        send_eval(&session, &keys, &request).await?;
+        curve.pending.push_back(Pending {
+            row,
+            request,
+            sent: Instant::now(),
+            tries: 1,
+        });
+    }
 
     let mut summary = Summary::default();
-    let (mut env_steps, mut updates, mut since_publish) = (0u64, 0u64, 0u64);
-    let mut window = Window::default();
-    let mut next_row = cfg.log_every;
-    let (mut last_loss, mut last_actor, mut last_aux) = (0.0f64, 0.0f64, 0.0f64);
     let start = Instant::now();
+    let wall = |p: &Progress| p.wall_s + start.elapsed().as_secs_f64();
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     tokio::pin!(shutdown);
     let mut stopped = false;
-    while env_steps < cfg.total_steps {
+    while p.env_steps < cfg.total_steps {
         let msg = tokio::select! {
             _ = &mut shutdown => { stopped = true; break }
             r = eval_results.next(pick_result) => {
@@ -544,7 +823,14 @@ pub async fn run(
             .entry(msg.actor)
             .or_insert(t.policy_version);
         actors.last_seen.insert(msg.actor, Instant::now());
-        let mut publish = false;
+        // NOTE: PPO trains only on the current version's data, and so does the
+        // deterministic mode; older trajectories are dropped and counted.
+        if (cfg.sync || matches!(backbone, Backbone::Ppo(..))) && t.policy_version != p.version {
+            p.stale += 1;
+            continue;
+        }
+        p.version_episodes += 1;
+        let mut publish_now = false;
         match &mut backbone {
             Backbone::Sac(sac) => {
                 let was_random = sac.env_steps < sac.cfg.random_steps;
@@ -559,22 +845,20 @@ pub async fn run(
                         Ok(last)
                     })?;
                     if let Some(l) = losses {
-                        (last_loss, last_actor, last_aux) =
-                            (l.critic as f64, l.actor as f64, l.alpha as f64);
+                        p.last_losses = [l.critic as f64, l.actor as f64, l.alpha as f64];
                     }
-                    updates += due;
-                    since_publish += due;
+                    p.updates += due;
+                    p.since_publish += due;
                 }
-                publish = since_publish >= cfg.publish_every
-                    || (was_random && sac.env_steps >= sac.cfg.random_steps);
+                publish_now = if cfg.sync {
+                    p.version_episodes
+                        >= version_share(&cfg, &backbone, weights_env_steps(&p)) * cfg.actors as u64
+                } else {
+                    p.since_publish >= cfg.publish_every
+                        || (was_random && sac.env_steps >= sac.cfg.random_steps)
+                };
             }
             Backbone::Ppo(ppo, rollout) => {
-                // NOTE: synchronous PPO trains only on the current version's data; older
-                // trajectories are dropped and counted.
-                if t.policy_version != version {
-                    summary.stale_trajectories += 1;
-                    continue;
-                }
                 rollout.push(t.clone());
                 let steps: usize = rollout.iter().map(|t| t.steps()).sum();
                 if steps >= ppo.cfg.rollout_steps {
@@ -582,39 +866,42 @@ pub async fn run(
                     let stats = tokio::task::block_in_place(|| {
                         ppo.train(rollout, |r| cfg.reward.of(r), total)
                     })?;
-                    (last_loss, last_actor, last_aux) = (
+                    p.last_losses = [
                         stats.value_loss as f64,
                         stats.policy_loss as f64,
                         stats.approx_kl as f64,
-                    );
-                    updates += stats.minibatch_updates;
+                    ];
+                    p.updates += stats.minibatch_updates;
                     rollout.clear();
-                    publish = true;
+                    publish_now = true;
                 }
             }
         }
-        env_steps += t.steps() as u64;
+        p.env_steps += t.steps() as u64;
         if let Some(bar) = &curve.bar {
-            bar.set_position(env_steps.min(cfg.total_steps));
+            bar.set_position(p.env_steps.min(cfg.total_steps));
         }
-        window.episodes += 1;
-        window.truth += t.outcome.return_truth as f64;
-        window.human += t.outcome.return_human as f64;
-        window.task += t.outcome.return_task as f64;
-        window.success += t.outcome.success as u8 as f64;
-        if publish {
-            version += 1;
-            since_publish = 0;
-            server
-                .publish(&weights_of(&cfg, &backbone, version, env_steps)?)
-                .await?;
+        p.window.episodes += 1;
+        p.window.truth += t.outcome.return_truth as f64;
+        p.window.human += t.outcome.return_human as f64;
+        p.window.task += t.outcome.return_task as f64;
+        p.window.success += t.outcome.success as u8 as f64;
+        if publish_now {
+            p.version += 1;
+            p.since_publish = 0;
+            p.version_episodes = 0;
+            p.weights_env_steps = p.env_steps;
+            server.publish(&publish(&backbone, &p)?).await?;
         }
-        if env_steps >= next_row || env_steps >= cfg.total_steps {
-            next_row += cfg.log_every;
-            let secs = start.elapsed().as_secs_f64().max(1e-9);
-            let n = window.episodes.max(1) as f64;
+        if p.env_steps >= p.next_row || p.env_steps >= cfg.total_steps {
+            while p.next_row <= p.env_steps {
+                p.next_row += cfg.log_every.max(1);
+            }
+            let secs = wall(&p).max(1e-9);
+            let here = start.elapsed().as_secs_f64().max(1e-9);
+            let n = p.window.episodes.max(1) as f64;
             let row = CurveRow {
-                env_steps,
+                env_steps: p.env_steps,
                 wall_s: secs,
                 eval_episodes: 0,
                 eval_return_truth: f64::NAN,
@@ -622,33 +909,30 @@ pub async fn run(
                 eval_return_human: f64::NAN,
                 eval_return_task: f64::NAN,
                 eval_version: 0,
-                episodes: window.episodes,
-                return_truth: window.truth / n,
-                success_rate: window.success / n,
-                return_human: window.human / n,
-                return_task: window.task / n,
-                loss_critic_or_value: last_loss,
-                loss_actor: last_actor,
-                alpha_or_kl: last_aux,
-                env_steps_per_s: env_steps as f64 / secs,
-                updates_per_s: updates as f64 / secs,
-                updates,
-                policy_version: version,
+                episodes: p.window.episodes,
+                return_truth: p.window.truth / n,
+                success_rate: p.window.success / n,
+                return_human: p.window.human / n,
+                return_task: p.window.task / n,
+                loss_critic_or_value: p.last_losses[0],
+                loss_actor: p.last_losses[1],
+                alpha_or_kl: p.last_losses[2],
+                env_steps_per_s: (p.env_steps - resumed_at) as f64 / here,
+                updates_per_s: p.updates as f64 / secs,
+                updates: p.updates,
+                policy_version: p.version,
                 dropped_messages: trajectories.dropped.get()
                     + eval_results.dropped.get()
                     + summary.dropped_messages,
-                stale_trajectories: summary.stale_trajectories,
+                stale_trajectories: p.stale,
             };
-            if let Some(out) = &cfg.out {
-                save_networks(out, &backbone, version, env_steps, updates)?;
-            }
             if cfg.eval_episodes == 0 {
                 curve.write(row, &mut summary)?;
             } else {
                 let request = EvalRequest {
-                    id: env_steps,
+                    id: p.env_steps,
                     actor: actors.next(),
-                    weights: weights_of(&cfg, &backbone, version, env_steps)?,
+                    weights: weights_of(&cfg, &backbone, p.version, p.env_steps)?,
                     seeds: seeds.clone(),
                 };
                 send_eval(&session, &keys, &request).await?;
@@ -659,7 +943,23 @@ pub async fn run(
                     tries: 1,
                 });
             }
-            window = Window::default();
+            p.window = Window::default();
+        }
+        // Checkpoints at a publication (PPO: no rollout half-collected; the deterministic
+        // mode: the point a resumed run starts from), once the mark is passed.
+        if publish_now && p.env_steps >= p.next_checkpoint {
+            while p.next_checkpoint <= p.env_steps {
+                p.next_checkpoint = p
+                    .next_checkpoint
+                    .saturating_add(every(cfg.checkpoint_every));
+            }
+            if let Some(f) = &folder {
+                let mut q = p.clone();
+                q.wall_s = wall(&p);
+                tokio::task::block_in_place(|| {
+                    write_checkpoint(f, &cfg, &backbone, &q, &curve, &mut segments)
+                })?;
+            }
         }
     }
     // The last evaluations: the actors answer while they wait for weights that will not
@@ -674,14 +974,45 @@ pub async fn run(
             m = trajectories.next() => { m?; }
         }
     }
+    // The final checkpoint (a stop, or the end): pending rows stay pending in it when
+    // stopped, so a resumed run writes them.
+    if let Some(f) = &folder {
+        let mut q = p.clone();
+        q.wall_s = wall(&p);
+        if stopped {
+            tracing::info!(env_steps = p.env_steps, "stopping: writing a checkpoint");
+        } else {
+            curve.flush(&mut summary)?;
+        }
+        tokio::task::block_in_place(|| {
+            write_checkpoint(f, &cfg, &backbone, &q, &curve, &mut segments)
+        })?;
+        if !stopped {
+            folder_finished(f, &p)?;
+        }
+    }
     curve.flush(&mut summary)?;
     if let Some(bar) = &curve.bar {
         bar.finish();
     }
     let _ = stop.put(wire::encode(&cfg.run, &Body::Stop)).await;
-    summary.env_steps = env_steps;
-    summary.updates = updates;
-    summary.policy_version = version;
+    summary.env_steps = p.env_steps;
+    summary.updates = p.updates;
+    summary.policy_version = p.version;
+    summary.stale_trajectories = p.stale;
+    summary.stopped = stopped;
     summary.dropped_messages += trajectories.dropped.get() + eval_results.dropped.get();
     Ok(summary)
+}
+
+/// The env steps the current version was made at (deterministic mode's share).
+fn weights_env_steps(p: &Progress) -> u64 {
+    p.weights_env_steps
+}
+
+fn folder_finished(f: &RunFolder, p: &Progress) -> Result<()> {
+    let text =
+        serde_json::json!({ "env_steps": p.env_steps, "version": p.version, "updates": p.updates });
+    f.write_atomic(&f.finished(), text.to_string().as_bytes())?;
+    Ok(())
 }
