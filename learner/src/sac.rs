@@ -527,9 +527,9 @@ mod tests {
             let x = k as f32;
             a.push(&[x, -x], &[0.5 * x], x * 10.0, &[x + 1.0, 0.0], k % 4 == 0);
         }
-        // The last 5 transitions (8..13), restored from rows 6..13.
+        // The last 5 transitions (8..13), the ring wrapped twice.
         let mut b = Replay::new(2, 1, 5);
-        b.restore(6, &a.rows(6, 13)).unwrap();
+        b.restore(8, &a.rows(8, 13)).unwrap();
         assert_eq!((b.len, b.next, b.total), (a.len, a.next, a.total));
         assert_eq!((&b.obs, &b.act, &b.rew), (&a.obs, &a.act, &a.rew));
         assert_eq!((&b.next_obs, &b.done), (&a.next_obs, &a.done));
