@@ -1,0 +1,241 @@
+//! Runs that outlive their process: `pbrl train` on the point task as a child process,
+//! killed, stopped, corrupted and resumed.
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use pbrl_learner::run_folder::RunFolder;
+
+fn pbrl(args: &[String]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_pbrl"));
+    c.args(args).env("RUST_LOG", "info");
+    c
+}
+
+fn train_args(out: &Path, extra: &[&str]) -> Vec<String> {
+    let mut a: Vec<String> = [
+        "train",
+        "--task",
+        "point",
+        "--log-every",
+        "500",
+        "--checkpoint-every",
+        "1000",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    a.push("--out".into());
+    a.push(out.display().to_string());
+    a.extend(extra.iter().map(|s| s.to_string()));
+    a
+}
+
+fn spawn(args: &[String]) -> Child {
+    pbrl(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("pbrl starts")
+}
+
+/// Wait (polling the folder) until the run has a complete checkpoint; its env steps.
+fn first_checkpoint(folder: &RunFolder, child: &mut Child) -> u64 {
+    let start = Instant::now();
+    loop {
+        if let Some(c) = folder.latest_checkpoint().unwrap() {
+            return c.manifest.env_steps;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its first checkpoint"
+        );
+        assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// The curve's rows: (env steps, policy version).
+fn curve(folder: &RunFolder) -> Vec<(u64, u64)> {
+    let text = std::fs::read_to_string(folder.curve()).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let (steps, version) = (col("env_steps"), col("policy_version"));
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[steps].parse().unwrap(), f[version].parse().unwrap())
+        })
+        .collect()
+}
+
+fn log(folder: &RunFolder) -> String {
+    std::fs::read_to_string(folder.log()).unwrap()
+}
+
+#[test]
+fn a_killed_run_resumes_from_its_checkpoint_and_its_curve_has_every_row_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = RunFolder::new(dir.path());
+    let args = train_args(
+        dir.path(),
+        &["--steps", "20000", "--eval-episodes", "2", "--actors", "2"],
+    );
+    let mut child = spawn(&args);
+    first_checkpoint(&folder, &mut child);
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let resumed_from = folder
+        .latest_checkpoint()
+        .unwrap()
+        .expect("a checkpoint")
+        .manifest
+        .env_steps;
+    assert!(resumed_from < 20_000, "the run finished before the kill");
+
+    let out = pbrl(&args).output().unwrap();
+    assert!(out.status.success());
+    let log = log(&folder);
+    assert!(
+        log.lines()
+            .any(|l| l.contains("resuming the run")
+                && l.contains(&format!("env_steps={resumed_from} "))),
+        "{log}"
+    );
+    assert!(folder.finished_steps().unwrap() >= Some(20_000));
+    let rows = curve(&folder);
+    assert_eq!(rows.len(), 40, "{rows:?}");
+    for (k, (steps, _)) in rows.iter().enumerate() {
+        let due = 500 * (k as u64 + 1);
+        assert!((due..due + 30).contains(steps), "row {k}: {steps}");
+    }
+    assert!(
+        rows.windows(2).all(|w| w[0].1 <= w[1].1),
+        "the weights version only grows: {rows:?}"
+    );
+}
+
+#[test]
+fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() {
+    // Deterministic mode, one actor. SAC on the point task publishes after the 600 random
+    // steps and then every 17 episodes (510 steps): 1620 and 3150 are publication points.
+    let whole = tempfile::tempdir().unwrap();
+    let halves = tempfile::tempdir().unwrap();
+    let other = tempfile::tempdir().unwrap();
+    let run = |dir: &Path, seed: &str, steps: &str| {
+        let a = train_args(
+            dir,
+            &[
+                "--sync",
+                "--actors",
+                "1",
+                "--eval-episodes",
+                "0",
+                "--seed",
+                seed,
+                "--steps",
+                steps,
+            ],
+        );
+        let out = pbrl(&a).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        RunFolder::new(dir).latest_checkpoint().unwrap().unwrap()
+    };
+    let a = run(whole.path(), "5", "3150");
+    run(halves.path(), "5", "1620");
+    let b = run(halves.path(), "5", "3150");
+    assert_eq!(a.manifest.env_steps, 3150);
+    assert_eq!(b.manifest.env_steps, 3150);
+    assert!(log(&RunFolder::new(halves.path())).contains("resuming the run"));
+    for net in ["policy", "critic", "target_critic"] {
+        let file = format!("{net}.safetensors");
+        let (x, y) = (
+            std::fs::read(a.dir.join(&file)).unwrap(),
+            std::fs::read(b.dir.join(&file)).unwrap(),
+        );
+        assert!(x == y, "{net} differs after the resume");
+    }
+    // The check can fail: another seed gives other weights.
+    let c = run(other.path(), "6", "3150");
+    assert_ne!(
+        std::fs::read(c.dir.join("policy.safetensors")).unwrap(),
+        std::fs::read(a.dir.join("policy.safetensors")).unwrap()
+    );
+}
+
+#[test]
+fn sigterm_checkpoints_and_exits_0_a_torn_checkpoint_falls_back_a_contradiction_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = RunFolder::new(dir.path());
+    let args = train_args(dir.path(), &["--steps", "400000", "--actors", "1"]);
+    let mut child = spawn(&args);
+    let first = first_checkpoint(&folder, &mut child);
+    // Wait for a second checkpoint, so that there is one to fall back to.
+    let start = Instant::now();
+    while folder
+        .latest_checkpoint()
+        .unwrap()
+        .unwrap()
+        .manifest
+        .env_steps
+        == first
+    {
+        assert!(start.elapsed() < Duration::from_secs(120));
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let status = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("stopped at"));
+    let stopped = folder.latest_checkpoint().unwrap().unwrap();
+    assert!(stopped.manifest.env_steps < 400_000);
+    assert!(folder.finished_steps().unwrap().is_none());
+
+    // Another algorithm on the same folder is refused, naming the field and both values.
+    let mut ppo = args.clone();
+    ppo.extend(["--algo".to_string(), "ppo".to_string()]);
+    let out = pbrl(&ppo).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("algo") && err.contains("\"sac\"") && err.contains("\"ppo\""),
+        "{err}"
+    );
+
+    // Tear the newest checkpoint: the run goes on from the one before, with a warning.
+    let torn = stopped.dir.join("state.bin");
+    let bytes = std::fs::read(&torn).unwrap();
+    std::fs::write(&torn, &bytes[..bytes.len() / 2]).unwrap();
+    let previous = folder.latest_checkpoint().unwrap().unwrap();
+    assert!(previous.manifest.env_steps < stopped.manifest.env_steps);
+    let mut short = args.clone();
+    let total = (previous.manifest.env_steps + 600).to_string();
+    *short
+        .iter_mut()
+        .skip_while(|s| *s != "--steps")
+        .nth(1)
+        .unwrap() = total;
+    let out = pbrl(&short).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let log = log(&folder);
+    assert!(log.contains("torn or corrupt"), "{log}");
+    assert!(
+        log.lines().any(|l| l.contains("resuming the run")
+            && l.contains(&format!("env_steps={} ", previous.manifest.env_steps))),
+        "{log}"
+    );
+}
