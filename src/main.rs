@@ -1,5 +1,7 @@
 //! `pbrl`: the command line. It parses arguments, sets up logging and calls the crates.
 
+mod exp;
+mod plot;
 mod train;
 
 use anyhow::Result;
@@ -27,6 +29,9 @@ enum Command {
     Learner(train::TrainArgs),
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
+    /// Experiments: a grid of runs (`pbrl exp run GRID.toml`) and its figures (`pbrl exp plot DIR`).
+    #[command(subcommand)]
+    Exp(exp::ExpCommand),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
     Bench(train::BenchCommand),
@@ -73,6 +78,8 @@ fn main() -> Result<()> {
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
         Command::Bench(cmd) => return train::bench(cmd),
+        Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
+        Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),
         _ => {}
     }
     // NOTE: zenoh needs tokio's multi-thread scheduler; two workers match the 2 cores.
@@ -85,7 +92,9 @@ fn main() -> Result<()> {
             Command::Train(a) => train::train(a).await,
             Command::Learner(a) => train::learner(a).await,
             Command::Actor(a) => train::actor(a).await,
-            Command::Env(_) | Command::Bench(_) => unreachable!("handled above"),
+            Command::Env(_) | Command::Bench(_) | Command::Exp(_) => {
+                unreachable!("handled above")
+            }
         }
     })
 }

@@ -188,6 +188,20 @@ fn episode_steps(task: Task, world: &pbrl_actor::WorldConfig) -> u32 {
     }
 }
 
+/// A flag set at the first SIGINT or SIGTERM (a second one exits at once), watched on
+/// `runtime`.
+pub fn stop_flag(
+    runtime: &tokio::runtime::Runtime,
+) -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let f = flag.clone();
+    runtime.spawn(async move {
+        stop_signal().await;
+        f.store(true, std::sync::atomic::Ordering::Relaxed);
+    });
+    flag
+}
+
 /// Resolves at the first SIGINT or SIGTERM (the learner then finishes its update, writes
 /// a checkpoint and stops the actors); a second signal exits at once.
 async fn stop_signal() {

@@ -1,0 +1,434 @@
+//! `pbrl exp`: a grid of runs (algorithms x rewards x seeds x config overrides), each a run
+//! folder under one experiment folder, run as child `pbrl train` processes, N at a time.
+//! Finished runs are skipped and unfinished ones resumed, so the same command after an
+//! interruption carries on.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use pbrl_learner::run_folder::RunFolder;
+use serde::Deserialize;
+
+#[derive(Subcommand, Debug)]
+pub enum ExpCommand {
+    /// Run (or carry on) every run of a grid.
+    Run(RunArgs),
+    /// The paper's figures and a summary table for an experiment folder.
+    Plot(crate::plot::PlotArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// The grid (TOML; see `results/baselines/grid.toml`).
+    pub grid: PathBuf,
+    /// Experiment folder (default: `runs/<grid name>`); each run is a folder in it.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Runs at a time (default: half the cores, at least 1; a SAC run keeps one core busy).
+    #[arg(long)]
+    pub parallel: Option<usize>,
+    /// This machine's part of the grid, `i/n` (runs i, i+n, i+2n, ... in name order).
+    #[arg(long, default_value = "0/1")]
+    pub shard: String,
+    /// Seconds between progress lines.
+    #[arg(long, default_value_t = 60)]
+    pub progress_every: u64,
+}
+
+/// A grid file.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Grid {
+    /// The experiment's name (its default folder).
+    pub name: String,
+    pub algos: Vec<String>,
+    pub rewards: Vec<String>,
+    pub seeds: Vec<u64>,
+    /// Env steps of every run, or per algorithm (`[steps] sac = 1000000`).
+    pub steps: Steps,
+    /// Flags given to every run (`actors = 2` gives `--actors 2`).
+    #[serde(default)]
+    pub set: BTreeMap<String, toml::Value>,
+    /// Flags with several values: every combination is a run.
+    #[serde(default)]
+    pub grid: BTreeMap<String, Vec<toml::Value>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+pub enum Steps {
+    All(u64),
+    PerAlgo(BTreeMap<String, u64>),
+}
+
+/// One run of the grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Cell {
+    /// Folder name, e.g. `sac-true-s1` or `sac-true-preset=paper-s1`.
+    pub name: String,
+    /// The method (the name without the seed): what the plots group by.
+    pub method: String,
+    pub steps: u64,
+    pub args: Vec<String>,
+}
+
+fn flag_value(v: &toml::Value) -> Result<String> {
+    Ok(match v {
+        toml::Value::String(s) => s.clone(),
+        toml::Value::Integer(i) => i.to_string(),
+        toml::Value::Float(f) => f.to_string(),
+        toml::Value::Boolean(b) => b.to_string(),
+        other => bail!("grid values must be strings, numbers or booleans, not {other}"),
+    })
+}
+
+impl Grid {
+    pub fn load(path: &Path) -> Result<Self> {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let grid: Grid =
+            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        for (field, empty) in [
+            ("algos", grid.algos.is_empty()),
+            ("rewards", grid.rewards.is_empty()),
+            ("seeds", grid.seeds.is_empty()),
+        ] {
+            if empty {
+                bail!("{}: {field} is empty", path.display());
+            }
+        }
+        for key in grid.set.keys().chain(grid.grid.keys()) {
+            if ["algo", "reward", "seed", "steps", "out", "run", "fresh"].contains(&key.as_str()) {
+                bail!(
+                    "{}: `{key}` is set by the grid itself, not in [set] or [grid]",
+                    path.display()
+                );
+            }
+        }
+        Ok(grid)
+    }
+
+    /// Every run, sorted by name.
+    pub fn cells(&self) -> Result<Vec<Cell>> {
+        // Every combination of the [grid] flags.
+        let mut combos: Vec<Vec<(String, String)>> = vec![vec![]];
+        for (key, values) in &self.grid {
+            let mut next = Vec::new();
+            for c in &combos {
+                for v in values {
+                    let mut c = c.clone();
+                    c.push((key.clone(), flag_value(v)?));
+                    next.push(c);
+                }
+            }
+            combos = next;
+        }
+        let mut cells = Vec::new();
+        for algo in &self.algos {
+            let steps = match &self.steps {
+                Steps::All(n) => *n,
+                Steps::PerAlgo(m) => *m
+                    .get(algo)
+                    .with_context(|| format!("[steps] has no entry for algorithm {algo}"))?,
+            };
+            for reward in &self.rewards {
+                for combo in &combos {
+                    let mut method = format!("{algo}-{reward}");
+                    for (k, v) in combo {
+                        method.push_str(&format!("-{k}={v}"));
+                    }
+                    for seed in &self.seeds {
+                        let mut args = vec![
+                            format!("--algo={algo}"),
+                            format!("--reward={reward}"),
+                            format!("--seed={seed}"),
+                            format!("--steps={steps}"),
+                        ];
+                        for (k, v) in self.set.iter() {
+                            args.push(format!("--{k}={}", flag_value(v)?));
+                        }
+                        for (k, v) in combo {
+                            args.push(format!("--{k}={v}"));
+                        }
+                        cells.push(Cell {
+                            name: format!("{method}-s{seed}"),
+                            method: method.clone(),
+                            steps,
+                            args,
+                        });
+                    }
+                }
+            }
+        }
+        cells.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(cells)
+    }
+}
+
+/// Parse `i/n`.
+fn shard(s: &str) -> Result<(usize, usize)> {
+    let parsed = s
+        .split_once('/')
+        .and_then(|(i, n)| Some((i.parse().ok()?, n.parse().ok()?)));
+    match parsed {
+        Some((i, n)) if n > 0 && i < n => Ok((i, n)),
+        _ => bail!("--shard {s:?}: expected i/n with 0 <= i < n, e.g. 0/2"),
+    }
+}
+
+/// A run id for key expressions: the cell name with anything else than a-z, 0-9, - and _
+/// replaced.
+fn run_id(grid: &str, cell: &str) -> String {
+    let id: String = format!("{grid}-{cell}")
+        .to_lowercase()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    id.chars().take(64).collect()
+}
+
+/// The newest row of a run's curve: (env steps, eval success rate).
+fn last_row(folder: &RunFolder) -> Option<(u64, f64)> {
+    let text = std::fs::read_to_string(folder.curve()).ok()?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next()?.split(',').collect();
+    let steps = header.iter().position(|h| *h == "env_steps")?;
+    let success = header.iter().position(|h| *h == "eval_success_rate")?;
+    let last: Vec<&str> = lines.last()?.split(',').collect();
+    Some((
+        last.get(steps)?.parse().ok()?,
+        last.get(success)?.parse().ok()?,
+    ))
+}
+
+struct Running {
+    cell: Cell,
+    child: Child,
+    started: Instant,
+    from_steps: u64,
+}
+
+pub fn run(args: RunArgs) -> Result<()> {
+    let grid = Grid::load(&args.grid)?;
+    let (i, n) = shard(&args.shard)?;
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("runs").join(&grid.name));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::copy(&args.grid, out.join("grid.toml"))
+        .with_context(|| format!("copying the grid into {}", out.display()))?;
+    let cells: Vec<Cell> = grid
+        .cells()?
+        .into_iter()
+        .enumerate()
+        .filter(|(k, _)| k % n == i)
+        .map(|(_, c)| c)
+        .collect();
+    let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+    let parallel = args.parallel.unwrap_or((cores / 2).max(1)).max(1);
+    let exe = std::env::current_exe().context("finding the pbrl executable")?;
+    let mut todo: Vec<Cell> = Vec::new();
+    for c in &cells {
+        let folder = RunFolder::new(out.join(&c.name));
+        match folder.finished_steps()? {
+            Some(s) if s >= c.steps => println!("{}: finished ({s} env steps), skipped", c.name),
+            _ => todo.push(c.clone()),
+        }
+    }
+    println!(
+        "experiment {} in {}: {} runs in this shard ({}/{}), {} to run, {parallel} at a time",
+        grid.name,
+        out.display(),
+        cells.len(),
+        i,
+        n,
+        todo.len()
+    );
+    todo.reverse();
+    let mut running: Vec<Running> = Vec::new();
+    let mut failed = Vec::new();
+    let mut last_report = Instant::now();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let stop = crate::train::stop_flag(&runtime);
+    let mut forwarded = false;
+    loop {
+        while running.len() < parallel && !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            let Some(cell) = todo.pop() else { break };
+            let folder = RunFolder::new(out.join(&cell.name));
+            let from_steps = last_row(&folder).map_or(0, |r| r.0);
+            let mut cmd = Command::new(&exe);
+            cmd.arg("train")
+                .args(&cell.args)
+                .arg(format!("--run={}", run_id(&grid.name, &cell.name)))
+                .arg(format!("--out={}", folder.root.display()))
+                .arg("--quiet")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null());
+            // NOTE: its own process group: a Ctrl-C reaches the runner, which forwards one
+            // stop to each run (a second signal would make a run exit without checkpoint).
+            std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
+            let child = cmd
+                .spawn()
+                .with_context(|| format!("starting run {}", cell.name))?;
+            println!(
+                "{}: {} (log in {})",
+                cell.name,
+                if from_steps > 0 {
+                    format!("resuming after {from_steps} env steps")
+                } else {
+                    "starting".to_string()
+                },
+                folder.log().display()
+            );
+            running.push(Running {
+                cell,
+                child,
+                started: Instant::now(),
+                from_steps,
+            });
+        }
+        if running.is_empty() {
+            break;
+        }
+        // Reap finished runs.
+        let mut k = 0;
+        while k < running.len() {
+            if let Some(status) = running[k].child.try_wait()? {
+                let r = running.swap_remove(k);
+                let folder = RunFolder::new(out.join(&r.cell.name));
+                let finished = folder.finished_steps()?.is_some_and(|s| s >= r.cell.steps);
+                if finished {
+                    println!(
+                        "{}: finished in {:.0} s",
+                        r.cell.name,
+                        r.started.elapsed().as_secs_f64()
+                    );
+                } else if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    println!("{}: stopped with a checkpoint", r.cell.name);
+                } else {
+                    println!(
+                        "{}: exited ({status}) before its total; see {}",
+                        r.cell.name,
+                        folder.log().display()
+                    );
+                    failed.push(r.cell.name.clone());
+                }
+            } else {
+                k += 1;
+            }
+        }
+        if stop.load(std::sync::atomic::Ordering::Relaxed) && !forwarded {
+            forwarded = true;
+            for r in &running {
+                // NOTE: forward the stop; each run checkpoints and exits.
+                let _ = Command::new("kill")
+                    .args(["-TERM", &r.child.id().to_string()])
+                    .status();
+            }
+        }
+        if last_report.elapsed() >= Duration::from_secs(args.progress_every) {
+            last_report = Instant::now();
+            report(&out, &cells, &running);
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    report(&out, &cells, &running);
+    if !failed.is_empty() {
+        bail!("{} runs failed: {}", failed.len(), failed.join(", "));
+    }
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        println!("stopped; the same command carries on");
+    }
+    Ok(())
+}
+
+/// One line per running run and the grid's total.
+fn report(out: &Path, cells: &[Cell], running: &[Running]) {
+    let (mut done, mut total) = (0u64, 0u64);
+    for c in cells {
+        let folder = RunFolder::new(out.join(&c.name));
+        let steps = last_row(&folder).map_or(0, |r| r.0).min(c.steps);
+        done += steps;
+        total += c.steps;
+    }
+    for r in running {
+        let folder = RunFolder::new(out.join(&r.cell.name));
+        let (steps, success) = last_row(&folder).unwrap_or((0, f64::NAN));
+        let rate = (steps.saturating_sub(r.from_steps)) as f64
+            / r.started.elapsed().as_secs_f64().max(1.0);
+        let left = if rate > 0.0 {
+            format!(
+                "{:.0} min left",
+                (r.cell.steps.saturating_sub(steps)) as f64 / rate / 60.0
+            )
+        } else {
+            "time left unknown".to_string()
+        };
+        println!(
+            "  {}: {steps}/{} env steps, eval success {:.0}%, {left}",
+            r.cell.name,
+            r.cell.steps,
+            100.0 * success
+        );
+    }
+    println!(
+        "grid: {done}/{total} env steps ({:.1}%)",
+        100.0 * done as f64 / total.max(1) as f64
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_grid_expands_to_named_runs() {
+        let g: Grid = toml::from_str(
+            r#"
+name = "t"
+algos = ["sac", "ppo"]
+rewards = ["true"]
+seeds = [1, 2]
+[steps]
+sac = 100
+ppo = 200
+[set]
+actors = 1
+[grid]
+preset = ["default", "paper"]
+"#,
+        )
+        .unwrap();
+        let cells = g.cells().unwrap();
+        assert_eq!(cells.len(), 8);
+        let c = cells
+            .iter()
+            .find(|c| c.name == "sac-true-preset=paper-s2")
+            .unwrap();
+        assert_eq!(c.method, "sac-true-preset=paper");
+        assert_eq!(c.steps, 100);
+        assert!(c.args.contains(&"--actors=1".to_string()));
+        assert!(c.args.contains(&"--preset=paper".to_string()));
+        assert_eq!(shard("1/3").unwrap(), (1, 3));
+        assert!(shard("3/3").is_err());
+        assert_eq!(
+            run_id("t", "sac-true-preset=paper-s2"),
+            "t-sac-true-preset_paper-s2"
+        );
+    }
+}

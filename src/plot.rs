@@ -1,0 +1,265 @@
+//! `pbrl exp plot`: the paper's figures (ground-truth return, success rate, preference
+//! return against env steps; mean and standard deviation over seeds, one line per method)
+//! and a summary table, for any experiment folder.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::Args;
+use plotters::prelude::*;
+
+#[derive(Args, Debug)]
+pub struct PlotArgs {
+    /// Experiment folder: one run folder per run, named `<method>-s<seed>`.
+    pub dir: PathBuf,
+    /// Env steps at which the summary table reports each method.
+    #[arg(long, value_delimiter = ',', default_value = "100000,500000,1000000")]
+    pub at: Vec<u64>,
+    /// Folder for the PNGs and tables (default: the experiment folder).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// The figures: curve column, title, y label.
+const FIGURES: [(&str, &str, &str); 3] = [
+    (
+        "eval_return_truth",
+        "Ground-truth return",
+        "return (sum of r)",
+    ),
+    ("eval_success_rate", "Task success rate", "success rate"),
+    (
+        "eval_return_human",
+        "Preference return",
+        "return (sum of r_H)",
+    ),
+];
+
+/// One run's evaluations: bucket (env steps / log_every) -> (env steps, values by figure).
+type Run = BTreeMap<u64, [f64; 3]>;
+
+fn read_run(dir: &Path) -> Result<Option<(u64, Run)>> {
+    let config = dir.join("config.json");
+    let curve = dir.join("curve.csv");
+    if !config.exists() || !curve.exists() {
+        return Ok(None);
+    }
+    let cfg: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(&config)
+            .with_context(|| format!("reading {}", config.display()))?,
+    )
+    .with_context(|| format!("parsing {}", config.display()))?;
+    let every = cfg["log_every"]
+        .as_u64()
+        .filter(|n| *n > 0)
+        .ok_or_else(|| anyhow!("{}: no log_every", config.display()))?;
+    let text =
+        std::fs::read_to_string(&curve).with_context(|| format!("reading {}", curve.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .ok_or_else(|| anyhow!("{}: no column {name}", curve.display()))
+    };
+    let steps = col("env_steps")?;
+    let cols = [col(FIGURES[0].0)?, col(FIGURES[1].0)?, col(FIGURES[2].0)?];
+    let mut run = Run::new();
+    for (k, line) in lines.enumerate() {
+        let f: Vec<&str> = line.split(',').collect();
+        let num = |i: usize| -> Result<f64> {
+            f.get(i).and_then(|s| s.parse::<f64>().ok()).ok_or_else(|| {
+                anyhow!(
+                    "{} row {}: column {i} is not a number",
+                    curve.display(),
+                    k + 2
+                )
+            })
+        };
+        let s = num(steps)? as u64;
+        let v = [num(cols[0])?, num(cols[1])?, num(cols[2])?];
+        if v.iter().all(|x| x.is_finite()) {
+            run.insert(s / every, v);
+        }
+    }
+    Ok(Some((every, run)))
+}
+
+/// Mean, standard deviation (over seeds, n - 1) and count.
+fn stats(xs: &[f64]) -> (f64, f64, usize) {
+    let n = xs.len();
+    let mean = xs.iter().sum::<f64>() / n.max(1) as f64;
+    let var = if n > 1 {
+        xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64
+    } else {
+        0.0
+    };
+    (mean, var.sqrt(), n)
+}
+
+/// A method's curve: (env steps, [(mean, std, n); 3]) per bucket.
+type Curve = Vec<(u64, [(f64, f64, usize); 3])>;
+
+fn method_of(run: &str) -> Option<&str> {
+    let (method, seed) = run.rsplit_once("-s")?;
+    seed.parse::<u64>().ok()?;
+    Some(method)
+}
+
+pub fn plot(args: PlotArgs) -> Result<()> {
+    let out = args.out.clone().unwrap_or_else(|| args.dir.clone());
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    // Runs grouped by method.
+    let mut methods: BTreeMap<String, Vec<(u64, Run)>> = BTreeMap::new();
+    let entries =
+        std::fs::read_dir(&args.dir).with_context(|| format!("reading {}", args.dir.display()))?;
+    for e in entries.filter_map(|e| e.ok()) {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(method) = method_of(&name) else {
+            continue;
+        };
+        if let Some(run) = read_run(&e.path())? {
+            methods.entry(method.to_string()).or_default().push(run);
+        }
+    }
+    if methods.is_empty() {
+        bail!(
+            "{} holds no runs (folders named <method>-s<seed> with config.json and curve.csv)",
+            args.dir.display()
+        );
+    }
+    let mut curves: BTreeMap<String, Curve> = BTreeMap::new();
+    for (method, runs) in &methods {
+        let every = runs[0].0;
+        if runs.iter().any(|r| r.0 != every) {
+            bail!("runs of {method} have different log_every; they cannot be averaged");
+        }
+        let buckets: std::collections::BTreeSet<u64> =
+            runs.iter().flat_map(|r| r.1.keys().copied()).collect();
+        let curve = buckets
+            .into_iter()
+            .map(|b| {
+                let fig = |i: usize| {
+                    let xs: Vec<f64> = runs
+                        .iter()
+                        .filter_map(|r| r.1.get(&b).map(|v| v[i]))
+                        .collect();
+                    stats(&xs)
+                };
+                (b * every, [fig(0), fig(1), fig(2)])
+            })
+            .collect();
+        curves.insert(method.clone(), curve);
+    }
+    pbrl_actor::render::load_font()?;
+    for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
+        let path = out.join(format!("{}.png", column.trim_start_matches("eval_")));
+        draw(&path, title, ylabel, i, &curves)?;
+        println!("wrote {}", path.display());
+    }
+    // The summary table.
+    let mut md = String::from("| method | env steps | seeds | ground-truth return | success rate | preference return |\n|---|---|---|---|---|---|\n");
+    let mut csv = String::from("method,env_steps,seeds,return_truth_mean,return_truth_std,success_rate_mean,success_rate_std,return_human_mean,return_human_std\n");
+    for (method, curve) in &curves {
+        let every = methods[method][0].0;
+        for &at in &args.at {
+            let Some((steps, f)) = curve.iter().find(|(s, _)| *s == at / every * every) else {
+                continue;
+            };
+            let n = f[0].2;
+            md.push_str(&format!(
+                "| {method} | {steps} | {n} | {:.1} ± {:.1} | {:.2} ± {:.2} | {:.1} ± {:.1} |\n",
+                f[0].0, f[0].1, f[1].0, f[1].1, f[2].0, f[2].1
+            ));
+            csv.push_str(&format!(
+                "{method},{steps},{n},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}\n",
+                f[0].0, f[0].1, f[1].0, f[1].1, f[2].0, f[2].1
+            ));
+        }
+    }
+    for (name, text) in [("summary.md", &md), ("summary.csv", &csv)] {
+        let path = out.join(name);
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        println!("wrote {}", path.display());
+    }
+    print!("{md}");
+    Ok(())
+}
+
+fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
+    anyhow!("drawing: {e:?}")
+}
+
+fn draw(
+    path: &Path,
+    title: &str,
+    ylabel: &str,
+    fig: usize,
+    curves: &BTreeMap<String, Curve>,
+) -> Result<()> {
+    let points = curves.values().flat_map(|c| c.iter());
+    let (mut x1, mut y0, mut y1) = (1u64, f64::MAX, f64::MIN);
+    for (s, f) in points {
+        x1 = x1.max(*s);
+        y0 = y0.min(f[fig].0 - f[fig].1);
+        y1 = y1.max(f[fig].0 + f[fig].1);
+    }
+    if fig == 1 {
+        (y0, y1) = (0.0, 1.0);
+    }
+    let pad = ((y1 - y0) * 0.05).max(1e-3);
+    let root = BitMapBackend::new(path, (900, 560)).into_drawing_area();
+    root.fill(&WHITE).map_err(draw_err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 26))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0f64..x1 as f64, (y0 - pad)..(y1 + pad))
+        .map_err(draw_err)?;
+    chart
+        .configure_mesh()
+        .x_desc("env steps")
+        .y_desc(ylabel)
+        .x_label_formatter(&|x| format!("{:.0}k", x / 1e3))
+        .draw()
+        .map_err(draw_err)?;
+    for (k, (method, curve)) in curves.iter().enumerate() {
+        let color = Palette99::pick(k).to_rgba();
+        let mut band: Vec<(f64, f64)> = curve
+            .iter()
+            .map(|(s, f)| (*s as f64, f[fig].0 + f[fig].1))
+            .collect();
+        band.extend(
+            curve
+                .iter()
+                .rev()
+                .map(|(s, f)| (*s as f64, f[fig].0 - f[fig].1)),
+        );
+        chart
+            .draw_series(std::iter::once(Polygon::new(band, color.mix(0.2).filled())))
+            .map_err(draw_err)?;
+        let seeds = curve.iter().map(|(_, f)| f[fig].2).max().unwrap_or(0);
+        chart
+            .draw_series(LineSeries::new(
+                curve.iter().map(|(s, f)| (*s as f64, f[fig].0)),
+                color.stroke_width(2),
+            ))
+            .map_err(draw_err)?
+            .label(format!("{method} ({seeds} seeds)"))
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::LowerRight)
+        .draw()
+        .map_err(draw_err)?;
+    root.present().map_err(draw_err)?;
+    Ok(())
+}

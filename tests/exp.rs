@@ -1,0 +1,102 @@
+//! `pbrl exp`: a tiny grid, interrupted and run again, finishes without redoing a
+//! finished run; `pbrl exp plot` draws it.
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use pbrl_learner::run_folder::RunFolder;
+
+const GRID: &str = r#"
+name = "tiny"
+algos = ["sac"]
+rewards = ["true"]
+seeds = [1, 2]
+steps = 20000
+[set]
+task = "point"
+actors = 1
+log-every = 1000
+checkpoint-every = 1000
+eval-episodes = 2
+"#;
+
+fn wait_for(what: &str, mut ready: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !ready() {
+        assert!(
+            start.elapsed() < Duration::from_secs(180),
+            "waited too long for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[test]
+fn an_interrupted_grid_carries_on_without_redoing_a_finished_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = dir.path().join("grid.toml");
+    std::fs::write(&grid, GRID).unwrap();
+    let out = dir.path().join("exp");
+    let exp = |extra: &[&str]| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_pbrl"));
+        c.args(["exp", "run"])
+            .arg(&grid)
+            .arg("--out")
+            .arg(&out)
+            .args(["--parallel", "1", "--progress-every", "1"])
+            .args(extra);
+        c
+    };
+    let first = RunFolder::new(out.join("sac-true-s1"));
+    let second = RunFolder::new(out.join("sac-true-s2"));
+    let child = exp(&[]).stdout(Stdio::piped()).spawn().unwrap();
+    wait_for("the first run to finish", || {
+        first.finished_steps().unwrap().is_some()
+    });
+    wait_for("the second run's first checkpoint", || {
+        second.latest_checkpoint().unwrap().is_some()
+    });
+    let finished_curve = std::fs::read(first.curve()).unwrap();
+    Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let done = child.wait_with_output().unwrap();
+    assert!(done.status.success());
+    assert!(
+        second.finished_steps().unwrap().is_none(),
+        "the second run finished before the interruption; the test proves nothing"
+    );
+
+    let again = exp(&[]).output().unwrap();
+    let text = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success(), "{text}");
+    assert!(text.contains("sac-true-s1: finished (20"), "{text}");
+    assert!(!text.contains("sac-true-s1: starting"), "{text}");
+    assert!(text.contains("sac-true-s2: resuming after"), "{text}");
+    assert_eq!(std::fs::read(first.curve()).unwrap(), finished_curve);
+    assert!(second.finished_steps().unwrap() >= Some(20_000));
+
+    // The figures and the table.
+    let plot = Command::new(env!("CARGO_BIN_EXE_pbrl"))
+        .args(["exp", "plot"])
+        .arg(&out)
+        .args(["--at", "10000,20000"])
+        .output()
+        .unwrap();
+    assert!(
+        plot.status.success(),
+        "{}",
+        String::from_utf8_lossy(&plot.stderr)
+    );
+    for f in [
+        "return_truth.png",
+        "success_rate.png",
+        "return_human.png",
+        "summary.csv",
+    ] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("| sac-true | 20000 | 2 |"), "{summary}");
+}
