@@ -355,6 +355,21 @@ pub enum BenchCommand {
         /// Env steps per run (SAC's first 600 are random actions without updates).
         #[arg(long, default_value_t = 20_000)]
         steps: u64,
+        /// Env steps between checkpoints (0: only the final one).
+        #[arg(long, default_value_t = 0)]
+        checkpoint_every: u64,
+        /// Only this algorithm.
+        #[arg(long)]
+        algo: Option<String>,
+    },
+    /// What a checkpoint costs with a full SAC replay buffer (feeding-sized transitions).
+    Checkpoint {
+        /// Transitions in the buffer.
+        #[arg(long, default_value_t = 1_000_000)]
+        transitions: u64,
+        /// Transitions added before the second (incremental) checkpoint.
+        #[arg(long, default_value_t = 50_000)]
+        increment: u64,
     },
 }
 
@@ -365,7 +380,7 @@ struct TrainLine {
     args: TrainArgs,
 }
 
-fn bench_train(steps: u64) -> Result<()> {
+fn bench_train(steps: u64, checkpoint_every: u64, only: Option<String>) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -375,6 +390,9 @@ fn bench_train(steps: u64) -> Result<()> {
         "algo", "actors", "env steps", "env steps/s", "updates/s", "wall s"
     );
     for algo in ["sac", "ppo"] {
+        if only.as_deref().is_some_and(|a| a != algo) {
+            continue;
+        }
         for actors in [1u32, 2] {
             let out = std::env::temp_dir().join(format!(
                 "pbrl-bench-train-{}-{algo}-{actors}",
@@ -387,6 +405,7 @@ fn bench_train(steps: u64) -> Result<()> {
                 format!("--steps={steps}"),
                 format!("--log-every={steps}"),
                 "--eval-episodes=0".into(),
+                format!("--checkpoint-every={checkpoint_every}"),
                 format!("--run=bench-{algo}-{actors}"),
                 format!("--out={}", out.display()),
             ];
@@ -410,7 +429,42 @@ fn bench_train(steps: u64) -> Result<()> {
 pub fn bench(cmd: BenchCommand) -> Result<()> {
     let steps = match cmd {
         BenchCommand::Learner { steps } => steps,
-        BenchCommand::Train { steps } => return bench_train(steps),
+        BenchCommand::Train {
+            steps,
+            checkpoint_every,
+            algo,
+        } => return bench_train(steps, checkpoint_every, algo),
+        BenchCommand::Checkpoint {
+            transitions,
+            increment,
+        } => {
+            let dir =
+                std::env::temp_dir().join(format!("pbrl-bench-checkpoint-{}", std::process::id()));
+            let c = service::bench_checkpoint(&dir, transitions, increment);
+            let _ = std::fs::remove_dir_all(&dir);
+            let c = c?;
+            let mb = |b: u64| b as f64 / 1e6;
+            println!(
+                "replay buffer of {} transitions (obs 25, action 7), SAC 256x256:",
+                c.transitions
+            );
+            println!(
+                "  first checkpoint (whole buffer): {:.0} ms, {:.1} MB",
+                c.full_ms,
+                mb(c.full_bytes)
+            );
+            println!(
+                "  next checkpoint (+{} transitions): {:.0} ms, {:.1} MB",
+                c.increment,
+                c.increment_ms,
+                mb(c.increment_bytes)
+            );
+            println!(
+                "  restore (checks, networks, buffer): {:.0} ms",
+                c.restore_ms
+            );
+            return Ok(());
+        }
     };
     println!(
         "{:<8} {:>10} {:>8} {:>12} {:>12}",

@@ -1016,3 +1016,105 @@ fn folder_finished(f: &RunFolder, p: &Progress) -> Result<()> {
     f.write_atomic(&f.finished(), text.to_string().as_bytes())?;
     Ok(())
 }
+
+/// What checkpoints cost with a full replay buffer (`pbrl bench checkpoint`).
+#[derive(Clone, Debug)]
+pub struct CheckpointCost {
+    pub transitions: u64,
+    /// The first checkpoint: the whole buffer as one segment.
+    pub full_ms: f64,
+    pub full_bytes: u64,
+    /// A checkpoint after `increment` more transitions: only they are written.
+    pub increment: u64,
+    pub increment_ms: f64,
+    pub increment_bytes: u64,
+    /// Reading the newest checkpoint back (checks, networks, replay buffer).
+    pub restore_ms: f64,
+}
+
+/// Fill a feeding-sized SAC (obs 25, action 7, 256x256) replay buffer with `transitions`
+/// random transitions, checkpoint it into `dir`, add `increment`, checkpoint again, and
+/// restore.
+pub fn bench_checkpoint(
+    dir: &std::path::Path,
+    transitions: u64,
+    increment: u64,
+) -> Result<CheckpointCost> {
+    use rand::{Rng, SeedableRng};
+    let cfg = LearnerConfig {
+        run: "bench".into(),
+        algo: Algo::Sac,
+        reward: RewardSource::True,
+        total_steps: transitions + increment,
+        obs_dim: 25,
+        act_dim: 7,
+        sac: SacConfig {
+            replay_capacity: transitions as usize,
+            ..SacConfig::default()
+        },
+        ppo: PpoConfig::default(),
+        publish_every: 50,
+        log_every: 10_000,
+        actors: 1,
+        episode_steps: 200,
+        eval_episodes: 0,
+        checkpoint_every: 0,
+        keep_checkpoints: 2,
+        sync: false,
+        out: Some(dir.to_path_buf()),
+        progress: false,
+    };
+    let folder = RunFolder::new(dir);
+    let mut backbone = Backbone::Sac(Box::new(Sac::new(cfg.sac.clone(), 25, 7)?));
+    let (file, _, mut segments) = open_folder(&folder, &cfg, &mut backbone)?;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut fill = |backbone: &mut Backbone, n: u64| {
+        if let Backbone::Sac(sac) = backbone {
+            for _ in 0..n {
+                let obs: Vec<f32> = (0..25).map(|_| rng.random()).collect();
+                let act: Vec<f32> = (0..7).map(|_| rng.random()).collect();
+                sac.replay.push(&obs, &act, rng.random(), &obs, false);
+            }
+        }
+    };
+    let curve = Curve {
+        file: Some(file),
+        written: 0,
+        pending: VecDeque::new(),
+        bar: None,
+    };
+    let mut p = Progress {
+        version: 1,
+        ..Progress::default()
+    };
+    let timed =
+        |backbone: &Backbone, p: &Progress, segments: &mut Vec<FileSum>| -> Result<(f64, u64)> {
+            let before: u64 = segments.iter().map(|s| s.bytes).sum();
+            let start = Instant::now();
+            write_checkpoint(&folder, &cfg, backbone, p, &curve, segments)?;
+            let ms = start.elapsed().as_secs_f64() * 1e3;
+            let after: u64 = segments.iter().map(|s| s.bytes).sum();
+            let nets: u64 = folder
+                .latest_checkpoint()?
+                .map_or(0, |c| c.manifest.files.iter().map(|f| f.bytes).sum());
+            Ok((ms, after.saturating_sub(before) + nets))
+        };
+    fill(&mut backbone, transitions);
+    p.env_steps = transitions;
+    let (full_ms, full_bytes) = timed(&backbone, &p, &mut segments)?;
+    fill(&mut backbone, increment);
+    p.env_steps += increment;
+    let (increment_ms, increment_bytes) = timed(&backbone, &p, &mut segments)?;
+    let start = Instant::now();
+    let mut fresh = Backbone::Sac(Box::new(Sac::new(cfg.sac.clone(), 25, 7)?));
+    open_folder(&folder, &cfg, &mut fresh)?;
+    Ok(CheckpointCost {
+        transitions,
+        full_ms,
+        full_bytes,
+        increment,
+        increment_ms,
+        increment_bytes,
+        restore_ms: start.elapsed().as_secs_f64() * 1e3,
+    })
+}
