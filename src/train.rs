@@ -45,6 +45,9 @@ pub struct LearnArgs {
     /// 0: only at the end or on a stop).
     #[arg(long, default_value_t = 50_000)]
     pub checkpoint_every: u64,
+    /// Also checkpoint when this many seconds have passed since the last one (0: off).
+    #[arg(long, default_value_t = 600)]
+    pub checkpoint_secs: u64,
     /// Checkpoints kept (the newest).
     #[arg(long, default_value_t = 3)]
     pub keep_checkpoints: usize,
@@ -110,6 +113,7 @@ impl LearnArgs {
             episode_steps,
             eval_episodes: self.eval_episodes,
             checkpoint_every: self.checkpoint_every,
+            checkpoint_secs: self.checkpoint_secs,
             keep_checkpoints: self.keep_checkpoints,
             sync: self.sync,
             progress: !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),

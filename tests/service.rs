@@ -40,6 +40,7 @@ fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
         episode_steps: pbrl_actor::runner::POINT_HORIZON,
         eval_episodes: 0,
         checkpoint_every: 0,
+        checkpoint_secs: 0,
         keep_checkpoints: 2,
         sync: false,
         out: None,

@@ -75,6 +75,8 @@ pub struct LearnerConfig {
     /// Env steps between checkpoints (taken at the next weights publication after the
     /// mark); 0: only when the run ends or is stopped.
     pub checkpoint_every: u64,
+    /// Also checkpoint when this many seconds have passed since the last (0: off).
+    pub checkpoint_secs: u64,
     /// Checkpoints kept (the newest).
     pub keep_checkpoints: usize,
     /// Deterministic mode: each version runs exactly its share of episodes and the next
@@ -472,6 +474,7 @@ pub const RESUMABLE_FIELDS: &[&str] = &[
     "total_steps",
     "actors",
     "checkpoint_every",
+    "checkpoint_secs",
     "keep_checkpoints",
     "log_every",
     "eval_episodes",
@@ -801,6 +804,7 @@ pub async fn run(
     let start = Instant::now();
     let wall = |p: &Progress| p.wall_s + start.elapsed().as_secs_f64();
     let mut tick = tokio::time::interval(Duration::from_secs(1));
+    let mut last_checkpoint = Instant::now();
     tokio::pin!(shutdown);
     let mut stopped = false;
     while p.env_steps < cfg.total_steps {
@@ -947,7 +951,10 @@ pub async fn run(
         }
         // Checkpoints at a publication (PPO: no rollout half-collected; the deterministic
         // mode: the point a resumed run starts from), once the mark is passed.
-        if publish_now && p.env_steps >= p.next_checkpoint {
+        let late = cfg.checkpoint_secs > 0
+            && last_checkpoint.elapsed() >= Duration::from_secs(cfg.checkpoint_secs);
+        if publish_now && (p.env_steps >= p.next_checkpoint || late) {
+            last_checkpoint = Instant::now();
             while p.next_checkpoint <= p.env_steps {
                 p.next_checkpoint = p
                     .next_checkpoint
@@ -1059,6 +1066,7 @@ pub fn bench_checkpoint(
         episode_steps: 200,
         eval_episodes: 0,
         checkpoint_every: 0,
+        checkpoint_secs: 0,
         keep_checkpoints: 2,
         sync: false,
         out: Some(dir.to_path_buf()),
