@@ -747,7 +747,7 @@ pub async fn run(
             Vec::new(),
         ),
     };
-    let resumed_at = p.env_steps;
+    let (resumed_at, updates_at) = (p.env_steps, p.updates);
 
     let server = WeightsServer::new(&session, &keys).await?;
     let trajectories = TrajectorySubscriber::new(&session, &keys).await?;
@@ -922,7 +922,7 @@ pub async fn run(
                 loss_actor: p.last_losses[1],
                 alpha_or_kl: p.last_losses[2],
                 env_steps_per_s: (p.env_steps - resumed_at) as f64 / here,
-                updates_per_s: p.updates as f64 / secs,
+                updates_per_s: (p.updates - updates_at) as f64 / here,
                 updates: p.updates,
                 policy_version: p.version,
                 dropped_messages: trajectories.dropped.get()
