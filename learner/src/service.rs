@@ -99,6 +99,9 @@ const EVAL_TIMEOUT: Duration = Duration::from_secs(60);
 /// Times an evaluation is asked before its row is written without it.
 const EVAL_TRIES: u32 = 3;
 
+/// `eval_episodes` of a row whose evaluation was given up on, until it is written.
+const GAVE_UP: u64 = u64::MAX;
+
 /// One row of the learning curve: the training episodes since the previous row, and the
 /// deterministic evaluation episodes of the weights at `env_steps` (NaN when not run).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -319,14 +322,40 @@ impl Curve {
         p.row.eval_return_human = mean(&|o| o.return_human as f64);
         p.row.eval_return_task = mean(&|o| o.return_task as f64);
         p.row.eval_version = r.version;
+        self.write_ready(summary)
+    }
+
+    /// Write the rows at the front that are done (evaluated, or given up on).
+    fn write_ready(&mut self, summary: &mut Summary) -> Result<()> {
         while self
             .pending
             .front()
             .is_some_and(|p| p.row.eval_episodes > 0)
         {
-            let p = self.pending.pop_front().expect("the front exists");
+            let mut p = self.pending.pop_front().expect("the front exists");
+            if p.row.eval_episodes == GAVE_UP {
+                p.row.eval_episodes = 0;
+            }
             self.write(p.row, summary)?;
         }
+        Ok(())
+    }
+
+    /// Ask for the evaluation of `row`'s weights; the row waits for it.
+    async fn ask(
+        &mut self,
+        session: &Session,
+        keys: &Keys,
+        row: CurveRow,
+        request: EvalRequest,
+    ) -> Result<()> {
+        send_eval(session, keys, &request).await?;
+        self.pending.push_back(Pending {
+            row,
+            request,
+            sent: Instant::now(),
+            tries: 1,
+        });
         Ok(())
     }
 
@@ -383,7 +412,7 @@ async fn retry_evaluations(
                 tries = p.tries,
                 "no actor answered the evaluation; its row is written without it"
             );
-            p.row.eval_episodes = u64::MAX; // marks it done
+            p.row.eval_episodes = GAVE_UP;
             continue;
         }
         p.request.actor = actors.next();
@@ -396,19 +425,7 @@ async fn retry_evaluations(
         );
         send_eval(session, keys, &p.request).await?;
     }
-    // Rows given up on: write them in order.
-    while curve
-        .pending
-        .front()
-        .is_some_and(|p| p.row.eval_episodes > 0)
-    {
-        let mut p = curve.pending.pop_front().expect("the front exists");
-        if p.row.eval_episodes == u64::MAX {
-            p.row.eval_episodes = 0;
-        }
-        curve.write(p.row, summary)?;
-    }
-    Ok(())
+    curve.write_ready(summary)
 }
 
 async fn send_eval(session: &Session, keys: &Keys, request: &EvalRequest) -> Result<()> {
@@ -791,13 +808,7 @@ pub async fn run(
     // Rows made before the checkpoint and not written: evaluated again.
     for (row, mut request) in pending {
         request.actor = 0;
-        send_eval(&session, &keys, &request).await?;
-        curve.pending.push_back(Pending {
-            row,
-            request,
-            sent: Instant::now(),
-            tries: 1,
-        });
+        curve.ask(&session, &keys, row, request).await?;
     }
 
     let mut summary = Summary::default();
@@ -939,13 +950,7 @@ pub async fn run(
                     weights: weights_of(&cfg, &backbone, p.version, p.env_steps)?,
                     seeds: seeds.clone(),
                 };
-                send_eval(&session, &keys, &request).await?;
-                curve.pending.push_back(Pending {
-                    row,
-                    request,
-                    sent: Instant::now(),
-                    tries: 1,
-                });
+                curve.ask(&session, &keys, row, request).await?;
             }
             p.window = Window::default();
         }
