@@ -338,8 +338,17 @@ impl RunFolder {
         self.read_checked(s)
     }
 
-    /// Keep the newest `keep` checkpoints and the replay segments they need.
+    /// Keep the newest `keep` checkpoints and the replay segments they need; remove what
+    /// an interrupted write left.
     fn prune(&self, keep: usize) -> Result<()> {
+        if let Ok(entries) = std::fs::read_dir(self.checkpoints()) {
+            for e in entries.filter_map(|e| e.ok()) {
+                if e.file_name().to_string_lossy().ends_with(".tmp") {
+                    std::fs::remove_dir_all(e.path())
+                        .with_context(|| format!("removing {}", e.path().display()))?;
+                }
+            }
+        }
         let dirs = self.checkpoint_dirs()?;
         for old in dirs.iter().skip(keep.max(1)) {
             std::fs::remove_dir_all(old).with_context(|| format!("removing {}", old.display()))?;
@@ -362,5 +371,76 @@ impl RunFolder {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checkpoints_are_kept_pruned_checked_and_skipped_when_torn() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = RunFolder::new(dir.path());
+        f.create().unwrap();
+        let vm = VarMap::new();
+        vm.get(
+            (2, 3),
+            "w",
+            candle_nn::Init::Const(1.0),
+            candle_core::DType::F32,
+            &candle_core::Device::Cpu,
+        )
+        .unwrap();
+        // A write interrupted before its rename leaves a .tmp directory behind.
+        std::fs::create_dir_all(f.checkpoints().join("000000000050.tmp")).unwrap();
+        let mut replay = Vec::new();
+        for (k, steps) in [100u64, 200, 300, 400].into_iter().enumerate() {
+            replay.push(
+                f.write_replay_segment(steps - 100, steps, &[k as f32; 4])
+                    .unwrap(),
+            );
+            // The newest checkpoints need only the last two segments.
+            let need = replay[replay.len().saturating_sub(2)..].to_vec();
+            f.write_checkpoint(steps, k as u64, &[("policy", &vm)], b"state", need, 2)
+                .unwrap();
+        }
+        let names = |d: PathBuf| {
+            let mut v: Vec<String> = std::fs::read_dir(d)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        assert_eq!(names(f.checkpoints()), ["000000000300", "000000000400"]);
+        assert_eq!(
+            names(f.replay()),
+            [
+                "000000000100-000000000200.bin",
+                "000000000200-000000000300.bin",
+                "000000000300-000000000400.bin"
+            ]
+        );
+        let c = f.latest_checkpoint().unwrap().unwrap();
+        assert_eq!(c.manifest.env_steps, 400);
+        assert_eq!(f.read(&c, "state.bin").unwrap(), b"state");
+        assert_eq!(
+            f.read_replay(&c.manifest.replay).unwrap(),
+            [2.0; 4]
+                .iter()
+                .chain(&[3.0; 4])
+                .copied()
+                .collect::<Vec<f32>>()
+        );
+        // A flipped byte in a segment the newest needs: the one before is used.
+        let seg = f.root.join(&c.manifest.replay[1].path);
+        let mut bytes = std::fs::read(&seg).unwrap();
+        bytes[0] ^= 1;
+        std::fs::write(&seg, bytes).unwrap();
+        assert_eq!(
+            f.latest_checkpoint().unwrap().unwrap().manifest.env_steps,
+            300
+        );
     }
 }
