@@ -19,27 +19,23 @@ pub struct PlotArgs {
     /// Folder for the PNGs and tables (default: the experiment folder).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Plot the training episodes (sampled actions, every episode since the previous row)
+    /// instead of the deterministic evaluations.
+    #[arg(long)]
+    pub training: bool,
 }
 
-/// The figures: curve column, title, y label.
+/// The figures: curve column (after `eval_` for the evaluations), title, y label.
 const FIGURES: [(&str, &str, &str); 3] = [
-    (
-        "eval_return_truth",
-        "Ground-truth return",
-        "return (sum of r)",
-    ),
-    ("eval_success_rate", "Task success rate", "success rate"),
-    (
-        "eval_return_human",
-        "Preference return",
-        "return (sum of r_H)",
-    ),
+    ("return_truth", "Ground-truth return", "return (sum of r)"),
+    ("success_rate", "Task success rate", "success rate"),
+    ("return_human", "Preference return", "return (sum of r_H)"),
 ];
 
 /// One run's evaluations: bucket (env steps / log_every) -> (env steps, values by figure).
 type Run = BTreeMap<u64, [f64; 3]>;
 
-fn read_run(dir: &Path) -> Result<Option<(u64, Run)>> {
+fn read_run(dir: &Path, prefix: &str) -> Result<Option<(u64, Run)>> {
     let config = dir.join("config.json");
     let curve = dir.join("curve.csv");
     if !config.exists() || !curve.exists() {
@@ -65,7 +61,8 @@ fn read_run(dir: &Path) -> Result<Option<(u64, Run)>> {
             .ok_or_else(|| anyhow!("{}: no column {name}", curve.display()))
     };
     let steps = col("env_steps")?;
-    let cols = [col(FIGURES[0].0)?, col(FIGURES[1].0)?, col(FIGURES[2].0)?];
+    let name = |i: usize| format!("{prefix}{}", FIGURES[i].0);
+    let cols = [col(&name(0))?, col(&name(1))?, col(&name(2))?];
     let mut run = Run::new();
     for (k, line) in lines.enumerate() {
         let f: Vec<&str> = line.split(',').collect();
@@ -110,6 +107,12 @@ fn method_of(run: &str) -> Option<&str> {
 
 pub fn plot(args: PlotArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.dir.clone());
+    // Column prefix, file prefix, and what the figures show.
+    let (prefix, file, what) = if args.training {
+        ("", "training_", "training episodes")
+    } else {
+        ("eval_", "", "evaluation")
+    };
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     // Runs grouped by method.
     let mut methods: BTreeMap<String, Vec<(u64, Run)>> = BTreeMap::new();
@@ -120,8 +123,10 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         let Some(method) = method_of(&name) else {
             continue;
         };
-        if let Some(run) = read_run(&e.path())? {
-            methods.entry(method.to_string()).or_default().push(run);
+        match read_run(&e.path(), prefix) {
+            Ok(Some(run)) => methods.entry(method.to_string()).or_default().push(run),
+            Ok(None) => {}
+            Err(e) => eprintln!("skipped {name}: {e:#}"),
         }
     }
     if methods.is_empty() {
@@ -155,12 +160,12 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     }
     pbrl_actor::render::load_font()?;
     for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
-        let path = out.join(format!("{}.png", column.trim_start_matches("eval_")));
-        draw(&path, title, ylabel, i, &curves)?;
+        let path = out.join(format!("{file}{column}.png"));
+        draw(&path, &format!("{title} ({what})"), ylabel, i, &curves)?;
         println!("wrote {}", path.display());
     }
     // The summary table.
-    let mut md = String::from("| method | env steps | seeds | ground-truth return | success rate | preference return |\n|---|---|---|---|---|---|\n");
+    let mut md = format!("Figures of the {what}: mean ± standard deviation over seeds.\n\n| method | env steps | seeds | ground-truth return | success rate | preference return |\n|---|---|---|---|---|---|\n");
     let mut csv = String::from("method,env_steps,seeds,return_truth_mean,return_truth_std,success_rate_mean,success_rate_std,return_human_mean,return_human_std\n");
     for (method, curve) in &curves {
         let every = methods[method][0].0;
@@ -180,7 +185,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         }
     }
     for (name, text) in [("summary.md", &md), ("summary.csv", &csv)] {
-        let path = out.join(name);
+        let path = out.join(format!("{file}{name}"));
         std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         println!("wrote {}", path.display());
     }
@@ -248,7 +253,10 @@ fn draw(
                 color.stroke_width(2),
             ))
             .map_err(draw_err)?
-            .label(format!("{method} ({seeds} seeds)"))
+            .label(format!(
+                "{method} ({seeds} seed{})",
+                if seeds == 1 { "" } else { "s" }
+            ))
             .legend(move |(x, y)| {
                 PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
             });
