@@ -579,7 +579,6 @@ fn write_checkpoint(
         config: serde_json::to_string(cfg)?,
         progress: Progress {
             rows_written: curve.written,
-            wall_s: progress.wall_s,
             ..progress.clone()
         },
         pending: curve
@@ -867,7 +866,7 @@ pub async fn run(
                 }
                 publish_now = if cfg.sync {
                     p.version_episodes
-                        >= version_share(&cfg, &backbone, weights_env_steps(&p)) * cfg.actors as u64
+                        >= version_share(&cfg, &backbone, p.weights_env_steps) * cfg.actors as u64
                 } else {
                     p.since_publish >= cfg.publish_every
                         || (was_random && sac.env_steps >= sac.cfg.random_steps)
@@ -1015,11 +1014,6 @@ pub async fn run(
     summary.stopped = stopped;
     summary.dropped_messages += trajectories.dropped.get() + eval_results.dropped.get();
     Ok(summary)
-}
-
-/// The env steps the current version was made at (deterministic mode's share).
-fn weights_env_steps(p: &Progress) -> u64 {
-    p.weights_env_steps
 }
 
 fn folder_finished(f: &RunFolder, p: &Progress) -> Result<()> {
