@@ -132,6 +132,18 @@ pub fn evaluate(
     })
 }
 
+/// Run the evaluation `req` asks for and publish its result.
+async fn answer(
+    world: Option<&mut FeedingWorld>,
+    req: &EvalRequest,
+    actor: u32,
+    results: &MessagePublisher,
+) -> Result<()> {
+    let r = tokio::task::block_in_place(|| evaluate(world, req, actor))
+        .with_context(|| format!("actor {actor}: evaluation {}", req.id))?;
+    results.send(&Body::EvalResult(r)).await
+}
+
 /// Run episodes until `shutdown` resolves or the learner says stop; run evaluation
 /// episodes when the learner asks.
 pub async fn run(
@@ -184,9 +196,7 @@ pub async fn run(
     let mut on_version = 0u32;
     loop {
         if let Some(req) = eval_requests.try_next(pick)? {
-            let r = tokio::task::block_in_place(|| evaluate(world.as_mut(), &req, cfg.id))
-                .with_context(|| format!("actor {}: evaluation {}", cfg.id, req.id))?;
-            eval_results.send(&Body::EvalResult(r)).await?;
+            answer(world.as_mut(), &req, cfg.id, &eval_results).await?;
             continue;
         }
         if let Some(w) = weights.newest() {
@@ -211,17 +221,14 @@ pub async fn run(
                     }
                 }
                 req = eval_requests.next(pick) => {
-                    let req = req?;
-                    let r = tokio::task::block_in_place(|| evaluate(world.as_mut(), &req, cfg.id))
-                        .with_context(|| format!("actor {}: evaluation {}", cfg.id, req.id))?;
-                    eval_results.send(&Body::EvalResult(r)).await?;
+                    answer(world.as_mut(), &req?, cfg.id, &eval_results).await?;
                 }
             }
         }
         // Seeds follow from the run's seed, the actor, the env steps the weights were made
         // at and the episode's number on them: a resumed run (whose versions count on from
-        // a gap) plays the same episodes as one never stopped, and no two episodes of a
-        // run share a seed. Sampling noise restarts from the episode's seed.
+        // a gap) plays the same episodes as one never stopped, and episodes of a run get
+        // distinct seeds (a 63-bit hash). Sampling noise restarts from the episode's seed.
         let seed = episode_seed(cfg.seed, cfg.id, policy.made_at, on_version);
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa0_c710_u64);
         on_version += 1;
