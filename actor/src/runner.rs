@@ -221,7 +221,8 @@ pub async fn run(
                     }
                 }
                 req = eval_requests.next(pick) => {
-                    answer(world.as_mut(), &req?, cfg.id, &eval_results).await?;
+                    let req = req?;
+                    answer(world.as_mut(), &req, cfg.id, &eval_results).await?;
                 }
             }
         }
