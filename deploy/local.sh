@@ -15,9 +15,12 @@ task=feeding
 for ((i = 1; i <= $#; i++)); do
     if [ "${!i}" = "--task" ]; then j=$((i + 1)); task=${!j}; fi
 done
-"$bin" learner --mode router --listen "tcp/127.0.0.1:$port" --run "$run" --actors "$actors" "$@" &
+# The learner in its own session: a Ctrl-C reaches this script, which passes one SIGTERM
+# on (the learner checkpoints and stops its actors; a second signal would skip that).
+setsid "$bin" learner --mode router --listen "tcp/127.0.0.1:$port" --run "$run" --actors "$actors" "$@" &
 learner=$!
-trap 'kill $learner ${pids[*]:-} 2>/dev/null || true' EXIT INT TERM
+trap 'kill -TERM $learner 2>/dev/null || true; wait $learner || true' INT TERM
+trap 'kill ${pids[*]:-} 2>/dev/null || true' EXIT
 pids=()
 for ((i = 0; i < actors; i++)); do
     "$bin" actor --connect "tcp/127.0.0.1:$port" --run "$run" --id "$i" --task "$task" &

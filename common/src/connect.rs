@@ -44,6 +44,10 @@ pub struct ConnectArgs {
     /// Turn multicast scouting on (it is off unless asked for, config file or not).
     #[arg(long)]
     pub multicast: bool,
+    /// Seconds to keep trying the --connect endpoints before giving up (a process may
+    /// start before the router or learner it joins); 0: one try.
+    #[arg(long, default_value_t = 60)]
+    pub connect_timeout: u64,
 }
 
 fn json_list(items: &[String]) -> String {
@@ -105,6 +109,13 @@ impl ConnectArgs {
         }
         if self.config.is_none() || !self.connect.is_empty() {
             set(&mut cfg, "connect/endpoints", json_list(&self.connect))?;
+        }
+        if !self.connect.is_empty() && self.connect_timeout > 0 {
+            set(
+                &mut cfg,
+                "connect/timeout_ms",
+                (self.connect_timeout * 1000).to_string(),
+            )?;
         }
         Ok(cfg)
     }
