@@ -226,8 +226,13 @@ pub fn run(args: RunArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| PathBuf::from("runs").join(&grid.name));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    std::fs::copy(&args.grid, out.join("grid.toml"))
-        .with_context(|| format!("copying the grid into {}", out.display()))?;
+    // NOTE: the grid is kept beside its runs; copying a file onto itself would empty it.
+    let kept = out.join("grid.toml");
+    let same = std::fs::canonicalize(&kept).ok() == Some(std::fs::canonicalize(&args.grid)?);
+    if !same {
+        std::fs::copy(&args.grid, &kept)
+            .with_context(|| format!("copying the grid into {}", out.display()))?;
+    }
     let cells: Vec<Cell> = grid
         .cells()?
         .into_iter()
