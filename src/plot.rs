@@ -143,7 +143,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         }
         let buckets: std::collections::BTreeSet<u64> =
             runs.iter().flat_map(|r| r.1.keys().copied()).collect();
-        let curve = buckets
+        let curve: Curve = buckets
             .into_iter()
             .map(|b| {
                 let fig = |i: usize| {
@@ -156,7 +156,14 @@ pub fn plot(args: PlotArgs) -> Result<()> {
                 (b * every, [fig(0), fig(1), fig(2)])
             })
             .collect();
+        if curve.is_empty() {
+            eprintln!("skipped {method}: no {what} rows yet");
+            continue;
+        }
         curves.insert(method.clone(), curve);
+    }
+    if curves.is_empty() {
+        bail!("{}: no run has {what} rows yet", args.dir.display());
     }
     pbrl_actor::render::load_font()?;
     for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
