@@ -88,15 +88,17 @@ pub fn init_seeded(varmap: &VarMap, rng: &mut impl Rng) -> Result<()> {
 pub fn export(varmap: &VarMap) -> Result<Vec<wire::Tensor>> {
     named_vars(varmap)?
         .into_iter()
-        .map(|(name, var)| {
-            let t = var.as_tensor();
-            Ok(wire::Tensor {
-                name,
-                shape: t.dims().to_vec(),
-                data: t.flatten_all()?.to_vec1::<f32>()?,
-            })
-        })
+        .map(|(name, var)| to_wire(&name, var.as_tensor()))
         .collect()
+}
+
+/// One tensor as a named, row-major f32 wire tensor.
+pub fn to_wire(name: &str, t: &Tensor) -> Result<wire::Tensor> {
+    Ok(wire::Tensor {
+        name: name.to_string(),
+        shape: t.dims().to_vec(),
+        data: t.flatten_all()?.to_vec1::<f32>()?,
+    })
 }
 
 /// Set the variables of `varmap` from named tensors; every variable must be given, with

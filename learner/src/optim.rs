@@ -27,14 +27,6 @@ pub struct AdamState {
     pub v: Vec<pbrl_common::wire::Tensor>,
 }
 
-fn to_wire(name: &str, t: &Tensor) -> Result<pbrl_common::wire::Tensor> {
-    Ok(pbrl_common::wire::Tensor {
-        name: name.to_string(),
-        shape: t.dims().to_vec(),
-        data: t.flatten_all()?.to_vec1::<f32>()?,
-    })
-}
-
 impl Adam {
     /// The moments and step count.
     pub fn state(&self) -> Result<AdamState> {
@@ -42,7 +34,7 @@ impl Adam {
             self.vars
                 .iter()
                 .zip(ts)
-                .map(|((name, _), t)| to_wire(name, t))
+                .map(|((name, _), t)| pbrl_common::nets::to_wire(name, t))
                 .collect()
         };
         Ok(AdamState {

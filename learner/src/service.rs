@@ -635,15 +635,9 @@ fn open_folder(
                     let tensors = candle_core::safetensors::load(&path, &candle_core::Device::Cpu)
                         .with_context(|| format!("reading {}", path.display()))?;
                     let tensors: Vec<wire::Tensor> = tensors
-                        .into_iter()
-                        .map(|(name, t)| {
-                            Ok(wire::Tensor {
-                                name,
-                                shape: t.dims().to_vec(),
-                                data: t.flatten_all()?.to_vec1::<f32>()?,
-                            })
-                        })
-                        .collect::<Result<_>>()?;
+                        .iter()
+                        .map(|(name, t)| pbrl_common::nets::to_wire(name, t))
+                        .collect::<candle_core::Result<_>>()?;
                     import(varmap, &tensors)
                         .with_context(|| format!("loading {}", path.display()))?;
                 }
