@@ -75,17 +75,37 @@ fn actor(
     (tx, handle)
 }
 
+/// An in-process router on a free loopback port: its endpoint, and the session that keeps
+/// it up.
+async fn router() -> (String, impl Sized) {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    (endpoint, router)
+}
+
+/// The learner service on its own session.
+async fn learner(
+    endpoint: &str,
+    cfg: LearnerConfig,
+) -> tokio::task::JoinHandle<anyhow::Result<service::Summary>> {
+    let session = ConnectArgs::connecting_to(endpoint).open().await.unwrap();
+    tokio::spawn(service::run(cfg, session, std::future::pending()))
+}
+
+/// A spawned task's result, within `secs` seconds.
+async fn joined<T>(task: tokio::task::JoinHandle<anyhow::Result<T>>, secs: u64) -> T {
+    tokio::time::timeout(Duration::from_secs(secs), task)
+        .await
+        .expect("timed out")
+        .expect("the task panicked")
+        .expect("the task failed")
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_stop_it() {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
-    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let (endpoint, _router) = router().await;
     let run = "service-test";
-    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let learner = tokio::spawn(service::run(
-        learner_config(run, Algo::Sac, 6_000),
-        learner_session,
-        std::future::pending(),
-    ));
+    let learner = learner(&endpoint, learner_config(run, Algo::Sac, 6_000)).await;
 
     let (_stop_a, actor_a) = actor(&endpoint, run, 0);
     let (stop_b, actor_b) = actor(&endpoint, run, 1);
@@ -109,11 +129,7 @@ async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_sto
     actor_b.abort();
     drop(stop_b);
 
-    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
-        .await
-        .unwrap()
-        .unwrap()
-        .unwrap();
+    let summary = joined(learner, 120).await;
     assert!(summary.env_steps >= 6_000);
     assert_eq!(
         summary.updates,
@@ -134,33 +150,23 @@ async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_sto
     assert_eq!(summary.dropped_messages, 0);
     // The learner's stop ends the remaining actors.
     for a in [actor_a, actor_c] {
-        tokio::time::timeout(Duration::from_secs(30), a)
-            .await
-            .unwrap()
-            .unwrap()
-            .unwrap();
+        joined(a, 30).await;
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn ppo_trains_only_on_the_current_version() {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
-    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let (endpoint, _router) = router().await;
     let run = "ppo-test";
     let dir = tempfile::tempdir().unwrap();
     let cfg = LearnerConfig {
         out: Some(dir.path().to_path_buf()),
         ..learner_config(run, Algo::Ppo, 3_000)
     };
-    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let learner = tokio::spawn(service::run(cfg, learner_session, std::future::pending()));
+    let learner = learner(&endpoint, cfg).await;
     let (_a, actor_a) = actor(&endpoint, run, 0);
     let (_b, actor_b) = actor(&endpoint, run, 1);
-    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
-        .await
-        .unwrap()
-        .unwrap()
-        .unwrap();
+    let summary = joined(learner, 120).await;
     assert!(summary.env_steps >= 3_000);
     // One version per rollout of 300 steps (10 episodes), counted only from fresh data.
     assert!(summary.policy_version >= 9, "{summary:?}");
@@ -189,36 +195,26 @@ async fn ppo_trains_only_on_the_current_version() {
         .unwrap();
     assert!(dir.path().join("config.json").exists());
     for a in [actor_a, actor_b] {
-        tokio::time::timeout(Duration::from_secs(30), a)
-            .await
-            .unwrap()
-            .unwrap()
-            .unwrap();
+        joined(a, 30).await;
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
-    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let (endpoint, _router) = router().await;
     let run = "eval-test";
     let watcher = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
     let weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
         .await
         .unwrap();
-    let learner_session = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
     let cfg = LearnerConfig {
         eval_episodes: 4,
         ..learner_config(run, Algo::Sac, 3_000)
     };
-    let learner = tokio::spawn(service::run(cfg, learner_session, std::future::pending()));
+    let learner = learner(&endpoint, cfg).await;
     let (_stop_a, actor_a) = actor(&endpoint, run, 0);
     let (_stop_b, actor_b) = actor(&endpoint, run, 1);
-    let summary = tokio::time::timeout(Duration::from_secs(120), learner)
-        .await
-        .unwrap()
-        .unwrap()
-        .unwrap();
+    let summary = joined(learner, 120).await;
     assert_eq!(summary.rows.len(), 3, "one row per 1,000 env steps");
     for (k, row) in summary.rows.iter().enumerate() {
         let due = 1_000 * (k as u64 + 1);
@@ -233,11 +229,7 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
         assert!((0.0..=1.0).contains(&row.eval_success_rate));
     }
     for a in [actor_a, actor_b] {
-        tokio::time::timeout(Duration::from_secs(30), a)
-            .await
-            .unwrap()
-            .unwrap()
-            .unwrap();
+        joined(a, 30).await;
     }
 
     // The same request gives the same episodes: the mean action, fixed seeds.

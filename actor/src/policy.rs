@@ -1,7 +1,6 @@
 //! The policy an actor runs, rebuilt from the learner's weights message.
 
 use anyhow::{bail, Context, Result};
-use candle_core::{Device, Tensor};
 use pbrl_common::nets::{import, GaussianPolicy, Owned};
 use pbrl_common::wire::Weights;
 use pbrl_common::RunningNorm;
@@ -15,7 +14,6 @@ pub struct Policy {
     pub made_at: u64,
     net: Owned<GaussianPolicy>,
     norm: RunningNorm,
-    obs_dim: usize,
     act_dim: usize,
     random_actions: bool,
     /// Episodes this version may run (0: no limit).
@@ -73,7 +71,6 @@ impl Policy {
             made_at: w.env_steps,
             net,
             norm,
-            obs_dim,
             act_dim,
             random_actions: w.random_actions,
             episodes_allowed: w.episodes_per_actor,
@@ -90,16 +87,11 @@ impl Policy {
         }
         let mut o = obs.to_vec();
         self.norm.apply(&mut o);
-        let o = Tensor::from_vec(o, (1, self.obs_dim), &Device::Cpu)?;
-        let a = if deterministic {
-            self.net.net.deterministic(&o)?
-        } else {
-            let eps: Vec<f32> = (0..self.act_dim)
+        let noise = (!deterministic).then(|| {
+            (0..self.act_dim)
                 .map(|_| rng.sample(StandardNormal))
-                .collect();
-            let eps = Tensor::from_vec(eps, (1, self.act_dim), &Device::Cpu)?;
-            self.net.net.sample(&o, &eps)?.0
-        };
-        Ok(a.squeeze(0)?.to_vec1::<f32>()?)
+                .collect()
+        });
+        Ok(self.net.net.act_one(o, noise)?)
     }
 }

@@ -201,6 +201,22 @@ impl GaussianPolicy {
     pub fn deterministic(&self, obs: &Tensor) -> Result<Tensor> {
         self.dist(obs)?.0.tanh()
     }
+
+    /// The action for one observation, as the network sees it (normalised where the
+    /// backbone normalises): the mean when `noise` is `None`, else the sample for that
+    /// standard normal noise.
+    pub fn act_one(&self, obs: Vec<f32>, noise: Option<Vec<f32>>) -> Result<Vec<f32>> {
+        let obs_dim = obs.len();
+        let o = Tensor::from_vec(obs, (1, obs_dim), &Device::Cpu)?;
+        let a = match noise {
+            None => self.deterministic(&o)?,
+            Some(eps) => {
+                let eps = Tensor::from_vec(eps, (1, self.act_dim), &Device::Cpu)?;
+                self.sample(&o, &eps)?.0
+            }
+        };
+        a.squeeze(0)?.to_vec1::<f32>()
+    }
 }
 
 /// log N(u; mean, exp(log_std)) summed over the last dimension, minus the log-Jacobian of

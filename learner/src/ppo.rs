@@ -330,26 +330,14 @@ impl Ppo {
     pub fn act_stochastic(&self, obs: &[f32], noise: &[f32]) -> Result<Vec<f32>> {
         let mut o = obs.to_vec();
         self.norm.apply(&mut o);
-        let o = Tensor::from_vec(o, (1, self.obs_dim), &Device::Cpu)?;
-        let eps = Tensor::from_slice(noise, (1, self.act_dim), &Device::Cpu)?;
-        self.policy
-            .net
-            .sample(&o, &eps)?
-            .0
-            .squeeze(0)?
-            .to_vec1::<f32>()
+        self.policy.net.act_one(o, Some(noise.to_vec()))
     }
 
     /// The deterministic action for one raw observation.
     pub fn act_deterministic(&self, obs: &[f32]) -> Result<Vec<f32>> {
         let mut o = obs.to_vec();
         self.norm.apply(&mut o);
-        let o = Tensor::from_vec(o, (1, self.obs_dim), &Device::Cpu)?;
-        self.policy
-            .net
-            .deterministic(&o)?
-            .squeeze(0)?
-            .to_vec1::<f32>()
+        self.policy.net.act_one(o, None)
     }
 }
 

@@ -255,7 +255,6 @@ pub struct SacLosses {
 /// The SAC learner state.
 pub struct Sac {
     pub cfg: SacConfig,
-    obs_dim: usize,
     act_dim: usize,
     pub policy: Owned<GaussianPolicy>,
     critic: Owned<TwinQ>,
@@ -303,7 +302,6 @@ impl Sac {
         let replay = Replay::new(obs_dim, act_dim, cfg.replay_capacity);
         Ok(Self {
             cfg,
-            obs_dim,
             act_dim,
             policy,
             critic,
@@ -385,10 +383,14 @@ impl Sac {
     }
 
     fn noise(&mut self, n: usize) -> Result<Tensor> {
-        let v: Vec<f32> = (0..n * self.act_dim)
+        Tensor::from_vec(self.noise_vec(n), (n, self.act_dim), &Device::Cpu)
+    }
+
+    /// `n` rows of standard normal noise from the learner's generator.
+    fn noise_vec(&mut self, n: usize) -> Vec<f32> {
+        (0..n * self.act_dim)
             .map(|_| self.rng.sample(StandardNormal))
-            .collect();
-        Tensor::from_vec(v, (n, self.act_dim), &Device::Cpu)
+            .collect()
     }
 
     /// One gradient step on critics, actor and temperature, then the target update.
@@ -454,24 +456,13 @@ impl Sac {
 
     /// The deterministic action for one observation.
     pub fn act_deterministic(&self, obs: &[f32]) -> Result<Vec<f32>> {
-        let o = Tensor::from_slice(obs, (1, self.obs_dim), &Device::Cpu)?;
-        self.policy
-            .net
-            .deterministic(&o)?
-            .squeeze(0)?
-            .to_vec1::<f32>()
+        self.policy.net.act_one(obs.to_vec(), None)
     }
 
     /// A sampled action for one observation.
     pub fn act_stochastic(&mut self, obs: &[f32]) -> Result<Vec<f32>> {
-        let o = Tensor::from_slice(obs, (1, self.obs_dim), &Device::Cpu)?;
-        let eps = self.noise(1)?;
-        self.policy
-            .net
-            .sample(&o, &eps)?
-            .0
-            .squeeze(0)?
-            .to_vec1::<f32>()
+        let eps = self.noise_vec(1);
+        self.policy.net.act_one(obs.to_vec(), Some(eps))
     }
 }
 

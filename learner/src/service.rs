@@ -839,6 +839,8 @@ pub async fn run(
         }
         p.version_episodes += 1;
         let mut publish_now = false;
+        // The weights published at this message, reused when a row falls on it.
+        let mut published = None;
         match &mut backbone {
             Backbone::Sac(sac) => {
                 let was_random = sac.env_steps < sac.cfg.random_steps;
@@ -899,7 +901,9 @@ pub async fn run(
             p.since_publish = 0;
             p.version_episodes = 0;
             p.weights_env_steps = p.env_steps;
-            server.publish(&publish(&backbone, &p)?).await?;
+            let w = publish(&backbone, &p)?;
+            server.publish(&w).await?;
+            published = Some(w);
         }
         if p.env_steps >= p.next_row || p.env_steps >= cfg.total_steps {
             while p.next_row <= p.env_steps {
@@ -940,7 +944,10 @@ pub async fn run(
                 let request = EvalRequest {
                     id: p.env_steps,
                     actor: actors.next(),
-                    weights: weights_of(&cfg, &backbone, p.version, p.env_steps)?,
+                    weights: match published.take() {
+                        Some(w) => w,
+                        None => weights_of(&cfg, &backbone, p.version, p.env_steps)?,
+                    },
                     seeds: seeds.clone(),
                 };
                 curve.ask(&session, &keys, row, request).await?;
