@@ -2,6 +2,7 @@
 //! Gaussian policy, the value network and the twin Q critics. Each trainable network owns
 //! its own `VarMap`; weights travel as named tensors ([`crate::wire::Weights`]).
 
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Linear, Module, VarBuilder, VarMap};
 use rand::Rng;
@@ -38,6 +39,71 @@ impl Mlp {
             }
         }
         Ok(h)
+    }
+}
+
+/// What [`Mlp::forward_taped`] keeps for [`Mlp::backward`]: each layer's input.
+pub struct MlpTape {
+    inputs: Vec<Tensor>,
+}
+
+// NOTE: candle's autodiff computes the gradient of every operand of every op (the weights
+// of a network that is not trained by this loss and the constant inputs included) and adds
+// each into a zero-filled buffer. The SAC step takes its gradients by hand instead (the
+// forward pass with a tape, then `backward`), which does only the work the step needs.
+impl Mlp {
+    /// The forward pass outside candle's autodiff, keeping each layer's input. The same
+    /// operations as [`Mlp::forward`], so the same outputs.
+    pub fn forward_taped(&self, x: &Tensor) -> Result<(Tensor, MlpTape)> {
+        let mut inputs = Vec::with_capacity(self.layers.len());
+        let mut h = x.detach();
+        for (i, l) in self.layers.iter().enumerate() {
+            let mut z = h.matmul(&l.weight().detach().t()?)?;
+            if let Some(b) = l.bias() {
+                z = z.broadcast_add(&b.detach())?;
+            }
+            inputs.push(h);
+            h = if i + 1 < self.layers.len() {
+                z.relu()?
+            } else {
+                z
+            };
+        }
+        Ok((h, MlpTape { inputs }))
+    }
+
+    /// Backpropagate `dy`, a loss's gradient with respect to the output of
+    /// [`Mlp::forward_taped`]: the weights' gradients go into `grads`, keyed by their
+    /// variables (none are computed without it), and the input's gradient is returned when
+    /// `want_dx`.
+    pub fn backward(
+        &self,
+        tape: &MlpTape,
+        dy: &Tensor,
+        mut grads: Option<&mut GradStore>,
+        want_dx: bool,
+    ) -> Result<Option<Tensor>> {
+        let mut dz = dy.clone();
+        for (i, l) in self.layers.iter().enumerate().rev() {
+            let x = &tape.inputs[i];
+            if let Some(g) = grads.as_deref_mut() {
+                g.insert(l.weight(), dz.t()?.matmul(x)?);
+                if let Some(b) = l.bias() {
+                    g.insert(b, dz.sum(0)?);
+                }
+            }
+            if i == 0 && !want_dx {
+                return Ok(None);
+            }
+            let dx = dz.matmul(&l.weight().detach())?;
+            if i == 0 {
+                return Ok(Some(dx));
+            }
+            // ReLU: this layer's input is relu(z) of the one before, positive where z was;
+            // its sign is the 0/1 mask.
+            dz = (dx * x.sign()?)?;
+        }
+        Ok(None)
     }
 }
 
@@ -202,6 +268,59 @@ impl GaussianPolicy {
         self.dist(obs)?.0.tanh()
     }
 
+    /// [`GaussianPolicy::sample`] outside candle's autodiff, keeping what
+    /// [`GaussianPolicy::backward_sample`] needs.
+    pub fn sample_taped(&self, obs: &Tensor, eps: &Tensor) -> Result<(Tensor, Tensor, PolicyTape)> {
+        let (out, mlp) = self.mlp.forward_taped(obs)?;
+        let mean = out.narrow(D::Minus1, 0, self.act_dim)?;
+        let tanh_raw = out.narrow(D::Minus1, self.act_dim, self.act_dim)?.tanh()?;
+        let log_std = tanh_raw.affine(
+            (LOG_STD_MAX - LOG_STD_MIN) / 2.0,
+            (LOG_STD_MAX + LOG_STD_MIN) / 2.0,
+        )?;
+        let std_eps = (log_std.exp()? * eps)?;
+        let u = (&mean + &std_eps)?;
+        let logp = squashed_log_prob(&u, &mean, &log_std)?;
+        let a = u.tanh()?;
+        let tape = PolicyTape {
+            mlp,
+            a: a.clone(),
+            std_eps,
+            tanh_raw,
+        };
+        Ok((a, logp, tape))
+    }
+
+    /// The weights' gradients, into `grads`, of a loss `L` whose gradient with respect to
+    /// the sampled actions is `da` (`[batch, act_dim]`) and with respect to each row's
+    /// log-probability is the constant `dlogp`.
+    ///
+    /// With `u = mean + std eps` and `a = tanh(u)`, the log-probability's total derivatives
+    /// are `d logp / d mean = 2a` and `d logp / d log_std = 2a std eps - 1` (the Gaussian
+    /// term's `z = eps` does not move), so
+    /// `dL/d mean = da (1 - a^2) + 2 dlogp a` and `dL/d log_std = dL/d mean std eps - dlogp`,
+    /// then through the squash of the log-std, `(MAX - MIN) / 2 (1 - tanh(raw)^2)`.
+    pub fn backward_sample(
+        &self,
+        tape: &PolicyTape,
+        da: &Tensor,
+        dlogp: f64,
+        grads: &mut GradStore,
+    ) -> Result<()> {
+        let a = &tape.a;
+        let du = (da * a.sqr()?.affine(-1.0, 1.0)?)?;
+        let dmean = (du + (a * (2.0 * dlogp))?)?;
+        let dlog_std = ((&dmean * &tape.std_eps)? - dlogp)?;
+        let draw = (dlog_std
+            * tape.tanh_raw.sqr()?.affine(
+                -(LOG_STD_MAX - LOG_STD_MIN) / 2.0,
+                (LOG_STD_MAX - LOG_STD_MIN) / 2.0,
+            )?)?;
+        let dout = Tensor::cat(&[&dmean, &draw], D::Minus1)?;
+        self.mlp.backward(&tape.mlp, &dout, Some(grads), false)?;
+        Ok(())
+    }
+
     /// The action for one observation, as the network sees it (normalised where the
     /// backbone normalises): the mean when `noise` is `None`, else the sample for that
     /// standard normal noise.
@@ -217,6 +336,14 @@ impl GaussianPolicy {
         };
         a.squeeze(0)?.to_vec1::<f32>()
     }
+}
+
+/// What [`GaussianPolicy::sample_taped`] keeps for [`GaussianPolicy::backward_sample`].
+pub struct PolicyTape {
+    mlp: MlpTape,
+    a: Tensor,
+    std_eps: Tensor,
+    tanh_raw: Tensor,
 }
 
 /// log N(u; mean, exp(log_std)) summed over the last dimension, minus the log-Jacobian of
@@ -253,6 +380,7 @@ impl ValueNet {
 pub struct TwinQ {
     q1: Mlp,
     q2: Mlp,
+    act_dim: usize,
 }
 
 impl TwinQ {
@@ -261,6 +389,7 @@ impl TwinQ {
         Ok(Self {
             q1: Mlp::new(vb.pp("q1"), &s)?,
             q2: Mlp::new(vb.pp("q2"), &s)?,
+            act_dim,
         })
     }
 
@@ -268,6 +397,44 @@ impl TwinQ {
     pub fn forward(&self, obs: &Tensor, act: &Tensor) -> Result<(Tensor, Tensor)> {
         let x = Tensor::cat(&[obs, act], D::Minus1)?;
         Ok((self.q1.forward(&x)?, self.q2.forward(&x)?))
+    }
+
+    /// [`TwinQ::forward`] outside candle's autodiff, with each network's tape.
+    pub fn forward_taped(
+        &self,
+        obs: &Tensor,
+        act: &Tensor,
+    ) -> Result<((Tensor, Tensor), [MlpTape; 2])> {
+        let x = Tensor::cat(&[obs, act], D::Minus1)?;
+        let (q1, t1) = self.q1.forward_taped(&x)?;
+        let (q2, t2) = self.q2.forward_taped(&x)?;
+        Ok(((q1, q2), [t1, t2]))
+    }
+
+    /// Backpropagate the gradients `dq` of both outputs: into the weights' gradients when
+    /// `grads` is given, and to the action (`[batch, act_dim]`, the sum over both networks)
+    /// when `want_da`.
+    pub fn backward(
+        &self,
+        tapes: &[MlpTape; 2],
+        dq: [&Tensor; 2],
+        mut grads: Option<&mut GradStore>,
+        want_da: bool,
+    ) -> Result<Option<Tensor>> {
+        let dx1 = self
+            .q1
+            .backward(&tapes[0], dq[0], grads.as_deref_mut(), want_da)?;
+        let dx2 = self.q2.backward(&tapes[1], dq[1], grads, want_da)?;
+        let (Some(dx1), Some(dx2)) = (dx1, dx2) else {
+            return Ok(None);
+        };
+        let dx = (dx1 + dx2)?;
+        let width = dx.dim(D::Minus1)?;
+        Ok(Some(dx.narrow(
+            D::Minus1,
+            width - self.act_dim,
+            self.act_dim,
+        )?))
     }
 }
 

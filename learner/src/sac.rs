@@ -5,6 +5,7 @@
 //! enforced here ([`Sac::updates_due`]): one gradient step per `update_every` env steps,
 //! however many actors there are and however fast they run.
 
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::VarMap;
 use pbrl_common::nets::{export, GaussianPolicy, Owned, TwinQ};
@@ -393,6 +394,61 @@ impl Sac {
             .collect()
     }
 
+    /// The critics' loss `mean((q1 - y)^2) + mean((q2 - y)^2)` and its gradients (by hand:
+    /// see `nets::Mlp::backward`).
+    fn critic_gradients(
+        &self,
+        obs: &Tensor,
+        act: &Tensor,
+        y: &Tensor,
+    ) -> Result<(Tensor, GradStore)> {
+        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, act)?;
+        let (e1, e2) = ((q1 - y)?, (q2 - y)?);
+        let loss = (e1.sqr()?.mean_all()? + e2.sqr()?.mean_all()?)?;
+        let scale = 2.0 / e1.dim(0)? as f64;
+        let mut grads = GradStore::default();
+        self.critic.net.backward(
+            &tapes,
+            [&(e1 * scale)?, &(e2 * scale)?],
+            Some(&mut grads),
+            false,
+        )?;
+        Ok((loss, grads))
+    }
+
+    /// The actor's loss `mean(alpha log pi(a|s) - min(q1, q2)(s, a))` for `a` sampled
+    /// with noise `eps`, the log-probabilities, and the policy's gradients (by hand; the
+    /// critics only pass the gradient on to the action).
+    fn actor_gradients(
+        &self,
+        obs: &Tensor,
+        eps: &Tensor,
+        alpha: f64,
+    ) -> Result<(Tensor, Tensor, GradStore)> {
+        let (a, logp, tape) = self.policy.net.sample_taped(obs, eps)?;
+        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, &a)?;
+        let loss = ((&logp * alpha)? - q1.minimum(&q2)?)?.mean_all()?;
+        // d/dq of -mean(min(q1, q2)): to the smaller one, halved on a tie (as candle).
+        let n = q1.dim(0)? as f64;
+        let (lt, tie) = (
+            q1.lt(&q2)?.to_dtype(DType::F32)?,
+            q1.eq(&q2)?.to_dtype(DType::F32)?,
+        );
+        let to_q1 = (lt + (tie * 0.5)?)?;
+        let dq1 = (&to_q1 * (-1.0 / n))?;
+        let dq2 = (to_q1.affine(-1.0, 1.0)? * (-1.0 / n))?;
+        let da = self
+            .critic
+            .net
+            .backward(&tapes, [&dq1, &dq2], None, true)?
+            .ok_or_else(|| candle_core::Error::Msg("no action gradient".into()))?;
+        let mut grads = GradStore::default();
+        self.policy
+            .net
+            .backward_sample(&tape, &da, alpha / n, &mut grads)?;
+        Ok((loss, logp, grads))
+    }
+
     /// One gradient step on critics, actor and temperature, then the target update.
     pub fn update(&mut self) -> Result<SacLosses> {
         let n = self.cfg.batch;
@@ -405,18 +461,12 @@ impl Sac {
         let (q1n, q2n) = self.target.net.forward(&next_obs, &a_next)?;
         let y = soft_q_target(&rew, &done, &q1n, &q2n, &logp_next, alpha, self.cfg.gamma)?.detach();
 
-        // Critics.
-        let (q1, q2) = self.critic.net.forward(&obs, &act)?;
-        let critic_loss = ((q1 - &y)?.sqr()?.mean_all()? + (q2 - &y)?.sqr()?.mean_all()?)?;
-        self.q_opt.step(&critic_loss.backward()?)?;
-
-        // Actor: maximise min Q - alpha log pi. NOTE: gradients reach the critics' weights
-        // here too, but only the actor's optimiser steps on this loss.
+        // Critics, then the actor through the updated critics.
+        let (critic_loss, grads) = self.critic_gradients(&obs, &act, &y)?;
+        self.q_opt.step(&grads)?;
         let eps = self.noise(n)?;
-        let (a_pi, logp) = self.policy.net.sample(&obs, &eps)?;
-        let (q1p, q2p) = self.critic.net.forward(&obs, &a_pi)?;
-        let actor_loss = ((&logp * alpha)? - q1p.minimum(&q2p)?)?.mean_all()?;
-        self.pi_opt.step(&actor_loss.backward()?)?;
+        let (actor_loss, logp, grads) = self.actor_gradients(&obs, &eps, alpha)?;
+        self.pi_opt.step(&grads)?;
 
         // Temperature.
         let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.act_dim as f64));
@@ -566,5 +616,76 @@ mod tests {
         assert_eq!(sac.updates_due(), 3);
         sac.update().unwrap();
         assert_eq!(sac.updates_due(), 2);
+    }
+
+    /// Every variable's gradient in `got` is candle autodiff's in `want`, within a
+    /// tolerance relative to the largest entry; `vars` names them.
+    fn assert_same_gradients(vars: &[(String, Var)], got: &GradStore, want: &GradStore) {
+        for (name, var) in vars {
+            let w = want.get(var).expect("autodiff has every gradient");
+            let g = got
+                .get(var)
+                .unwrap_or_else(|| panic!("no hand gradient for {name}"));
+            assert_eq!(g.dims(), w.dims(), "{name}");
+            let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let (g, w) = (flat(g), flat(w));
+            let scale = w.iter().fold(1e-6f32, |m, x| m.max(x.abs()));
+            let worst = g
+                .iter()
+                .zip(&w)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                worst <= 1e-4 * scale,
+                "{name}: hand gradient off by {worst} (largest entry {scale})"
+            );
+        }
+    }
+
+    #[test]
+    fn hand_gradients_of_both_losses_are_candle_autodiffs() {
+        let cfg = SacConfig {
+            hidden: vec![16, 12],
+            batch: 32,
+            seed: 3,
+            ..SacConfig::default()
+        };
+        let sac = Sac::new(cfg, 5, 2).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let mut t = |r: usize, c: usize, k: f32| {
+            let v: Vec<f32> = (0..r * c).map(|_| rng.random_range(-k..k)).collect();
+            Tensor::from_vec(v, (r, c), &Device::Cpu).unwrap()
+        };
+        let (obs, act, y, eps) = (t(32, 5, 2.0), t(32, 2, 0.99), t(32, 1, 3.0), t(32, 2, 1.5));
+
+        let (loss, got) = sac.critic_gradients(&obs, &act, &y).unwrap();
+        let (q1, q2) = sac.critic.net.forward(&obs, &act).unwrap();
+        let want = ((q1 - &y).unwrap().sqr().unwrap().mean_all().unwrap()
+            + (q2 - &y).unwrap().sqr().unwrap().mean_all().unwrap())
+        .unwrap();
+        assert_eq!(
+            loss.to_scalar::<f32>().unwrap(),
+            want.to_scalar::<f32>().unwrap()
+        );
+        assert_same_gradients(&sac.q_opt.vars, &got, &want.backward().unwrap());
+
+        // A temperature that weighs the log-probability as much as the critics do.
+        let alpha = 0.7;
+        let (loss, logp, got) = sac.actor_gradients(&obs, &eps, alpha).unwrap();
+        let (a, want_logp) = sac.policy.net.sample(&obs, &eps).unwrap();
+        let (q1, q2) = sac.critic.net.forward(&obs, &a).unwrap();
+        let want = ((&want_logp * alpha).unwrap() - q1.minimum(&q2).unwrap())
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        assert_eq!(
+            logp.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            want_logp.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        );
+        assert_eq!(
+            loss.to_scalar::<f32>().unwrap(),
+            want.to_scalar::<f32>().unwrap()
+        );
+        assert_same_gradients(&sac.pi_opt.vars, &got, &want.backward().unwrap());
     }
 }
