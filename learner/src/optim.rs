@@ -98,16 +98,25 @@ impl Adam {
         let t = self.t as i32;
         let (b1, b2) = (self.beta1, self.beta2);
         let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        // NOTE: one pass over each parameter's elements, where candle's tensor ops would
+        // take thirteen, each into a new buffer.
+        let (b1, b2, eps) = (b1 as f32, b2 as f32, self.eps as f32);
+        let (step, inv_c2) = ((self.lr / c1) as f32, (1.0 / c2) as f32);
+        let flat = |t: &Tensor| t.flatten_all()?.to_vec1::<f32>();
         for (i, (_, var)) in self.vars.iter().enumerate() {
             let Some(g) = grads.get(var) else { continue };
-            let m = ((&self.m[i] * b1)? + (g * (1.0 - b1))?)?;
-            let v = ((&self.v[i] * b2)? + (g.sqr()? * (1.0 - b2))?)?;
-            // PyTorch: p -= lr / c1 * m / (sqrt(v / c2) + eps)
-            let denom = ((&v / c2)?.sqrt()? + self.eps)?;
-            let update = ((&m / denom)? * (self.lr / c1))?;
-            var.set(&(var.as_tensor() - update)?)?;
-            self.m[i] = m;
-            self.v[i] = v;
+            let (g, mut p) = (flat(g)?, flat(var.as_tensor())?);
+            let (mut m, mut v) = (flat(&self.m[i])?, flat(&self.v[i])?);
+            for k in 0..p.len() {
+                m[k] = b1 * m[k] + (1.0 - b1) * g[k];
+                v[k] = b2 * v[k] + (1.0 - b2) * g[k] * g[k];
+                // PyTorch: p -= lr / c1 * m / (sqrt(v / c2) + eps)
+                p[k] -= step * m[k] / ((v[k] * inv_c2).sqrt() + eps);
+            }
+            let shape = var.shape();
+            var.set(&Tensor::from_vec(p, shape, var.device())?)?;
+            self.m[i] = Tensor::from_vec(m, shape, var.device())?;
+            self.v[i] = Tensor::from_vec(v, shape, var.device())?;
         }
         Ok(())
     }

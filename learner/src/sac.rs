@@ -488,9 +488,14 @@ impl Sac {
                 .data()
                 .lock()
                 .map_err(|_| candle_core::Error::Msg("poisoned".into()))?;
+            let flat = |t: &Var| t.flatten_all()?.to_vec1::<f32>();
+            let (a, b) = (tau as f32, (1.0 - tau) as f32);
             for (name, t) in dst.iter() {
-                let s = &src[name];
-                t.set(&((s.as_tensor() * tau)? + (t.as_tensor() * (1.0 - tau))?)?)?;
+                let (s, mut d) = (flat(&src[name])?, flat(t)?);
+                for (d, s) in d.iter_mut().zip(&s) {
+                    *d = a * s + b * *d;
+                }
+                t.set(&Tensor::from_vec(d, t.shape(), t.device())?)?;
             }
         }
         self.updates += 1;
