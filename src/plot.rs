@@ -32,10 +32,21 @@ const FIGURES: [(&str, &str, &str); 3] = [
     ("return_human", "Preference return", "return (sum of r_H)"),
 ];
 
-/// One run's evaluations: bucket (env steps / log_every) -> (env steps, values by figure).
+/// One run's evaluations: bucket (env steps / log_every) -> values by figure.
 type Run = BTreeMap<u64, [f64; 3]>;
 
-fn read_run(dir: &Path, prefix: &str) -> Result<Option<(u64, Run)>> {
+/// A run as read from its folder.
+struct RunData {
+    /// Env steps between rows.
+    every: u64,
+    rows: Run,
+    /// The last row's env steps and wall time (seconds of training, over every restart;
+    /// NaN where the curve has none).
+    last_steps: u64,
+    wall_s: f64,
+}
+
+fn read_run(dir: &Path, prefix: &str) -> Result<Option<RunData>> {
     let config = dir.join("config.json");
     let curve = dir.join("curve.csv");
     if !config.exists() || !curve.exists() {
@@ -61,9 +72,12 @@ fn read_run(dir: &Path, prefix: &str) -> Result<Option<(u64, Run)>> {
             .ok_or_else(|| anyhow!("{}: no column {name}", curve.display()))
     };
     let steps = col("env_steps")?;
+    // NOTE: curves written before wall times were logged have none.
+    let wall = col("wall_s").ok();
     let name = |i: usize| format!("{prefix}{}", FIGURES[i].0);
     let cols = [col(&name(0))?, col(&name(1))?, col(&name(2))?];
     let mut run = Run::new();
+    let (mut last_steps, mut wall_s) = (0, 0.0);
     for (k, line) in lines.enumerate() {
         let f: Vec<&str> = line.split(',').collect();
         let num = |i: usize| -> Result<f64> {
@@ -76,12 +90,18 @@ fn read_run(dir: &Path, prefix: &str) -> Result<Option<(u64, Run)>> {
             })
         };
         let s = num(steps)? as u64;
+        (last_steps, wall_s) = (s, wall.map_or(Ok(f64::NAN), num)?);
         let v = [num(cols[0])?, num(cols[1])?, num(cols[2])?];
         if v.iter().all(|x| x.is_finite()) {
             run.insert(s / every, v);
         }
     }
-    Ok(Some((every, run)))
+    Ok(Some(RunData {
+        every,
+        rows: run,
+        last_steps,
+        wall_s,
+    }))
 }
 
 /// Mean, standard deviation (over seeds, n - 1) and count.
@@ -115,7 +135,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     };
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     // Runs grouped by method.
-    let mut methods: BTreeMap<String, Vec<(u64, Run)>> = BTreeMap::new();
+    let mut methods: BTreeMap<String, Vec<RunData>> = BTreeMap::new();
     let entries =
         std::fs::read_dir(&args.dir).with_context(|| format!("reading {}", args.dir.display()))?;
     for e in entries.filter_map(|e| e.ok()) {
@@ -137,19 +157,19 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     }
     let mut curves: BTreeMap<String, Curve> = BTreeMap::new();
     for (method, runs) in &methods {
-        let every = runs[0].0;
-        if runs.iter().any(|r| r.0 != every) {
+        let every = runs[0].every;
+        if runs.iter().any(|r| r.every != every) {
             bail!("runs of {method} have different log_every; they cannot be averaged");
         }
         let buckets: std::collections::BTreeSet<u64> =
-            runs.iter().flat_map(|r| r.1.keys().copied()).collect();
+            runs.iter().flat_map(|r| r.rows.keys().copied()).collect();
         let curve: Curve = buckets
             .into_iter()
             .map(|b| {
                 let fig = |i: usize| {
                     let xs: Vec<f64> = runs
                         .iter()
-                        .filter_map(|r| r.1.get(&b).map(|v| v[i]))
+                        .filter_map(|r| r.rows.get(&b).map(|v| v[i]))
                         .collect();
                     stats(&xs)
                 };
@@ -175,7 +195,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     let mut md = format!("Figures of the {what}: mean ± standard deviation over seeds.\n\n| method | env steps | seeds | ground-truth return | success rate | preference return |\n|---|---|---|---|---|---|\n");
     let mut csv = String::from("method,env_steps,seeds,return_truth_mean,return_truth_std,success_rate_mean,success_rate_std,return_human_mean,return_human_std\n");
     for (method, curve) in &curves {
-        let every = methods[method][0].0;
+        let every = methods[method][0].every;
         for &at in &args.at {
             let Some((steps, f)) = curve.iter().find(|(s, _)| *s == at / every * every) else {
                 continue;
@@ -191,7 +211,45 @@ pub fn plot(args: PlotArgs) -> Result<()> {
             ));
         }
     }
-    for (name, text) in [("summary.md", &md), ("summary.csv", &csv)] {
+    // What each method's runs cost: env steps reached and wall time.
+    md.push_str("\nThe runs: env steps of their last row and wall time of training (seconds, summed over restarts).\n\n| method | seeds | env steps | wall time, mean | wall time, min-max |\n|---|---|---|---|---|\n");
+    let mut runs_csv = String::from(
+        "method,seeds,env_steps_min,env_steps_max,wall_s_mean,wall_s_min,wall_s_max\n",
+    );
+    for (method, runs) in &methods {
+        let steps =
+            |f: fn(u64, u64) -> u64| runs.iter().map(|r| r.last_steps).reduce(f).unwrap_or(0);
+        let (lo, hi) = (steps(u64::min), steps(u64::max));
+        let n = runs.len();
+        let range = if lo == hi {
+            format!("{lo}")
+        } else {
+            format!("{lo}-{hi}")
+        };
+        let walls: Vec<f64> = runs
+            .iter()
+            .map(|r| r.wall_s)
+            .filter(|w| w.is_finite())
+            .collect();
+        let (md_wall, csv_wall) = if walls.len() == n {
+            let (mean, _, _) = stats(&walls);
+            let lo = walls.iter().copied().fold(f64::MAX, f64::min);
+            let hi = walls.iter().copied().fold(f64::MIN, f64::max);
+            (
+                format!("{mean:.0} s | {lo:.0}-{hi:.0} s"),
+                format!("{mean:.1},{lo:.1},{hi:.1}"),
+            )
+        } else {
+            ("not logged | not logged".into(), ",,".into())
+        };
+        md.push_str(&format!("| {method} | {n} | {range} | {md_wall} |\n"));
+        runs_csv.push_str(&format!("{method},{n},{lo},{hi},{csv_wall}\n"));
+    }
+    for (name, text) in [
+        ("summary.md", &md),
+        ("summary.csv", &csv),
+        ("runs.csv", &runs_csv),
+    ] {
         let path = out.join(format!("{file}{name}"));
         std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         println!("wrote {}", path.display());

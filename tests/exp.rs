@@ -99,4 +99,20 @@ fn an_interrupted_grid_carries_on_without_redoing_a_finished_run() {
     }
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     assert!(summary.contains("| sac-true | 20000 | 2 |"), "{summary}");
+    // What the runs cost: both reached the total, with a wall time each.
+    let runs = std::fs::read_to_string(out.join("runs.csv")).unwrap();
+    let row: Vec<&str> = runs
+        .lines()
+        .find(|l| l.starts_with("sac-true,"))
+        .unwrap_or_else(|| panic!("{runs}"))
+        .split(',')
+        .collect();
+    assert_eq!(row[1], "2", "{runs}");
+    let steps: Vec<u64> = row[2..4].iter().map(|x| x.parse().unwrap()).collect();
+    assert!(steps.iter().all(|s| (20_000..20_100).contains(s)), "{runs}");
+    let wall: Vec<f64> = row[4..].iter().map(|x| x.parse().unwrap()).collect();
+    assert!(
+        wall[1] > 0.0 && wall[1] <= wall[0] && wall[0] <= wall[2],
+        "{runs}"
+    );
 }
