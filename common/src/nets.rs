@@ -271,9 +271,8 @@ impl GaussianPolicy {
         self.dist(obs)?.0.tanh()
     }
 
-    /// [`GaussianPolicy::sample`] outside candle's autodiff, keeping what
-    /// [`GaussianPolicy::backward_sample`] needs.
-    pub fn sample_taped(&self, obs: &Tensor, eps: &Tensor) -> Result<(Tensor, Tensor, PolicyTape)> {
+    /// [`GaussianPolicy::dist`] outside candle's autodiff: mean, log-std and the tape.
+    fn dist_taped(&self, obs: &Tensor) -> Result<(Tensor, Tensor, DistTape)> {
         let (out, mlp) = self.mlp.forward_taped(obs)?;
         let mean = out.narrow(D::Minus1, 0, self.act_dim)?;
         let tanh_raw = out.narrow(D::Minus1, self.act_dim, self.act_dim)?.tanh()?;
@@ -281,17 +280,71 @@ impl GaussianPolicy {
             (LOG_STD_MAX - LOG_STD_MIN) / 2.0,
             (LOG_STD_MAX + LOG_STD_MIN) / 2.0,
         )?;
+        Ok((mean, log_std, DistTape { mlp, tanh_raw }))
+    }
+
+    /// The weights' gradients, into `grads`, for the gradients of a loss with respect to
+    /// the mean and the log-std of [`GaussianPolicy::dist_taped`].
+    fn backward_dist(
+        &self,
+        tape: &DistTape,
+        dmean: &Tensor,
+        dlog_std: &Tensor,
+        grads: &mut GradStore,
+    ) -> Result<()> {
+        // log_std = k tanh(raw) + c: d/draw = k (1 - tanh(raw)^2).
+        let k = (LOG_STD_MAX - LOG_STD_MIN) / 2.0;
+        let draw = (dlog_std * tape.tanh_raw.sqr()?.affine(-k, k)?)?;
+        let dout = Tensor::cat(&[dmean, &draw], D::Minus1)?;
+        self.mlp.backward(&tape.mlp, &dout, Some(grads), false)?;
+        Ok(())
+    }
+
+    /// [`GaussianPolicy::sample`] outside candle's autodiff, keeping what
+    /// [`GaussianPolicy::backward_sample`] needs.
+    pub fn sample_taped(&self, obs: &Tensor, eps: &Tensor) -> Result<(Tensor, Tensor, PolicyTape)> {
+        let (mean, log_std, dist) = self.dist_taped(obs)?;
         let std_eps = (log_std.exp()? * eps)?;
         let u = (&mean + &std_eps)?;
         let logp = squashed_log_prob(&u, &mean, &log_std)?;
         let a = u.tanh()?;
         let tape = PolicyTape {
-            mlp,
+            dist,
             a: a.clone(),
             std_eps,
-            tanh_raw,
         };
         Ok((a, logp, tape))
+    }
+
+    /// [`GaussianPolicy::log_prob`] outside candle's autodiff, keeping what
+    /// [`GaussianPolicy::backward_log_prob`] needs.
+    pub fn log_prob_taped(&self, obs: &Tensor, a: &Tensor) -> Result<(Tensor, LogProbTape)> {
+        let (mean, log_std, dist) = self.dist_taped(obs)?;
+        let a = a.clamp(-1.0 + 1e-6, 1.0 - 1e-6)?;
+        let u = (((&a + 1.0)? / (1.0 - &a)?)?.log()? * 0.5)?;
+        let logp = squashed_log_prob(&u, &mean, &log_std)?;
+        let std = log_std.exp()?;
+        let z = ((&u - &mean)? / &std)?;
+        let tape = LogProbTape {
+            dist,
+            z_over_std: (&z / &std)?,
+            z,
+        };
+        Ok((logp, tape))
+    }
+
+    /// The weights' gradients, into `grads`, of a loss whose gradient with respect to each
+    /// row's log-probability of fixed actions is `dlogp` (`[batch, 1]`): the tanh term
+    /// does not move, `d logp / d mean = z / std` and `d logp / d log_std = z^2 - 1`.
+    pub fn backward_log_prob(
+        &self,
+        tape: &LogProbTape,
+        dlogp: &Tensor,
+        grads: &mut GradStore,
+    ) -> Result<()> {
+        let dmean = tape.z_over_std.broadcast_mul(dlogp)?;
+        let dlog_std = tape.z.sqr()?.affine(1.0, -1.0)?.broadcast_mul(dlogp)?;
+        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads)
     }
 
     /// The weights' gradients, into `grads`, of a loss `L` whose gradient with respect to
@@ -314,14 +367,7 @@ impl GaussianPolicy {
         let du = (da * a.sqr()?.affine(-1.0, 1.0)?)?;
         let dmean = (du + (a * (2.0 * dlogp))?)?;
         let dlog_std = ((&dmean * &tape.std_eps)? - dlogp)?;
-        let draw = (dlog_std
-            * tape.tanh_raw.sqr()?.affine(
-                -(LOG_STD_MAX - LOG_STD_MIN) / 2.0,
-                (LOG_STD_MAX - LOG_STD_MIN) / 2.0,
-            )?)?;
-        let dout = Tensor::cat(&[&dmean, &draw], D::Minus1)?;
-        self.mlp.backward(&tape.mlp, &dout, Some(grads), false)?;
-        Ok(())
+        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads)
     }
 
     /// The action for one observation, as the network sees it (normalised where the
@@ -341,12 +387,25 @@ impl GaussianPolicy {
     }
 }
 
+/// What [`GaussianPolicy::dist_taped`] keeps: the network's tape and the squashed raw
+/// log-std.
+struct DistTape {
+    mlp: MlpTape,
+    tanh_raw: Tensor,
+}
+
 /// What [`GaussianPolicy::sample_taped`] keeps for [`GaussianPolicy::backward_sample`].
 pub struct PolicyTape {
-    mlp: MlpTape,
+    dist: DistTape,
     a: Tensor,
     std_eps: Tensor,
-    tanh_raw: Tensor,
+}
+
+/// What [`GaussianPolicy::log_prob_taped`] keeps for [`GaussianPolicy::backward_log_prob`].
+pub struct LogProbTape {
+    dist: DistTape,
+    z: Tensor,
+    z_over_std: Tensor,
 }
 
 /// log N(u; mean, exp(log_std)) summed over the last dimension, minus the log-Jacobian of
@@ -375,6 +434,17 @@ impl ValueNet {
     /// Values, `[batch, 1]`.
     pub fn forward(&self, obs: &Tensor) -> Result<Tensor> {
         self.mlp.forward(obs)
+    }
+
+    /// [`ValueNet::forward`] outside candle's autodiff, with its tape.
+    pub fn forward_taped(&self, obs: &Tensor) -> Result<(Tensor, MlpTape)> {
+        self.mlp.forward_taped(obs)
+    }
+
+    /// The weights' gradients, into `grads`, for the gradient `dv` of the values.
+    pub fn backward(&self, tape: &MlpTape, dv: &Tensor, grads: &mut GradStore) -> Result<()> {
+        self.mlp.backward(tape, dv, Some(grads), false)?;
+        Ok(())
     }
 }
 

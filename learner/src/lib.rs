@@ -1,5 +1,6 @@
-//! The learner: the RL backbones (SAC now; PPO, the reward ensemble and query selection
-//! come with their issues), each in one file that reads like its paper.
+//! The learner: the RL backbones (SAC and PPO, each in one file that reads like its
+//! paper), the service that trains them over Zenoh, and the run folder with its
+//! checkpoints. The reward ensemble and query selection come with their issues.
 
 pub mod bench;
 pub mod optim;
@@ -8,3 +9,5 @@ pub mod run_folder;
 pub mod sac;
 pub mod service;
 pub mod state;
+#[cfg(test)]
+mod testutil;

@@ -7,7 +7,8 @@
 //! current weights (the caller drops those of older versions), so the old log-probabilities
 //! are recomputed here with the very policy and normaliser that acted.
 
-use candle_core::{Device, Result, Tensor};
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Result, Tensor};
 use pbrl_common::nets::{GaussianPolicy, Owned, ValueNet};
 use pbrl_common::{RunningNorm, StepRewards, Trajectory};
 use rand::seq::SliceRandom;
@@ -101,10 +102,45 @@ pub fn clipped_policy_loss(
     adv: &Tensor,
     clip: f64,
 ) -> Result<Tensor> {
+    let (unclipped, clipped) = surrogates(logp_new, logp_old, adv, clip)?;
+    unclipped.minimum(&clipped)?.mean_all()?.neg()
+}
+
+/// `r A` and `clip(r, 1 - eps, 1 + eps) A`.
+fn surrogates(
+    logp_new: &Tensor,
+    logp_old: &Tensor,
+    adv: &Tensor,
+    clip: f64,
+) -> Result<(Tensor, Tensor)> {
     let ratio = (logp_new - logp_old)?.exp()?;
     let unclipped = (&ratio * adv)?;
     let clipped = (ratio.clamp(1.0 - clip, 1.0 + clip)? * adv)?;
-    unclipped.minimum(&clipped)?.mean_all()?.neg()
+    Ok((unclipped, clipped))
+}
+
+/// The gradient of [`clipped_policy_loss`] with respect to `logp_new` (`[batch, 1]`):
+/// `-r A / batch` where the unclipped term is the minimum, else 0 (where both are equal
+/// and the clip is active, `A` is 0).
+pub fn clipped_policy_loss_grad(
+    logp_new: &Tensor,
+    logp_old: &Tensor,
+    adv: &Tensor,
+    clip: f64,
+) -> Result<Tensor> {
+    let (unclipped, clipped) = surrogates(logp_new, logp_old, adv, clip)?;
+    let taken = unclipped.le(&clipped)?.to_dtype(DType::F32)?;
+    (unclipped * taken)? * (-1.0 / logp_new.dim(0)? as f64)
+}
+
+/// One minibatch's log-probabilities, losses and gradients.
+struct Minibatch {
+    logp: Tensor,
+    policy_loss: Tensor,
+    /// The value loss without its coefficient.
+    value_loss: Tensor,
+    policy_grads: GradStore,
+    value_grads: GradStore,
 }
 
 /// What one rollout's training did.
@@ -213,6 +249,41 @@ impl Ppo {
         Tensor::from_vec(obs, (t.steps() + 1, self.obs_dim), &Device::Cpu)
     }
 
+    /// One minibatch's losses and gradients (by hand: see `nets::Mlp::backward`): the
+    /// clipped surrogate for the policy, `value_coef * mean((v - ret)^2)` for the value.
+    fn minibatch_gradients(
+        &self,
+        obs: &Tensor,
+        act: &Tensor,
+        logp_old: &Tensor,
+        adv: &Tensor,
+        ret: &Tensor,
+        clip: f64,
+    ) -> Result<Minibatch> {
+        let (logp, tape) = self.policy.net.log_prob_taped(obs, act)?;
+        let policy_loss = clipped_policy_loss(&logp, logp_old, adv, clip)?;
+        let dlogp = clipped_policy_loss_grad(&logp, logp_old, adv, clip)?;
+        let mut policy_grads = GradStore::default();
+        self.policy
+            .net
+            .backward_log_prob(&tape, &dlogp, &mut policy_grads)?;
+        let (v, tape) = self.value.net.forward_taped(obs)?;
+        let err = (v - ret)?;
+        let value_loss = err.sqr()?.mean_all()?;
+        let scale = 2.0 * self.cfg.value_coef / err.dim(0)? as f64;
+        let mut value_grads = GradStore::default();
+        self.value
+            .net
+            .backward(&tape, &(err * scale)?, &mut value_grads)?;
+        Ok(Minibatch {
+            logp,
+            policy_loss,
+            value_loss,
+            policy_grads,
+            value_grads,
+        })
+    }
+
     /// Train on one rollout. `total_steps` is the run's budget (for the linear decays).
     pub fn train(
         &mut self,
@@ -288,18 +359,17 @@ impl Ppo {
                 let std = mb_adv.broadcast_sub(&mean)?.sqr()?.mean_all()?.sqrt()?;
                 let mb_adv = mb_adv.broadcast_sub(&mean)?.broadcast_div(&(std + 1e-8)?)?;
 
-                let lp = self.policy.net.log_prob(&o, &a)?;
+                let mb = self.minibatch_gradients(&o, &a, &lp_old, &mb_adv, &r, clip)?;
+                let (lp, pi_loss, v_loss) = (mb.logp, mb.policy_loss, mb.value_loss);
                 let log_ratio = (&lp - &lp_old)?;
                 // Approximate KL (Schulman's k3): mean((r - 1) - log r).
                 let kl = ((log_ratio.exp()? - 1.0)? - &log_ratio)?
                     .mean_all()?
                     .to_scalar::<f32>()?;
-                let pi_loss = clipped_policy_loss(&lp, &lp_old, &mb_adv, clip)?;
-                let v_loss = (self.value.net.forward(&o)? - &r)?.sqr()?.mean_all()?;
-                let mut g = pi_loss.backward()?;
+                let mut g = mb.policy_grads;
                 clip_grad_norm(&self.pi_opt.vars, &mut g, self.cfg.max_grad_norm)?;
                 self.pi_opt.step(&g)?;
-                let mut g = (&v_loss * self.cfg.value_coef)?.backward()?;
+                let mut g = mb.value_grads;
                 clip_grad_norm(&self.v_opt.vars, &mut g, self.cfg.max_grad_norm)?;
                 self.v_opt.step(&g)?;
                 self.updates += 1;
@@ -344,6 +414,8 @@ impl Ppo {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testutil::assert_same_gradients;
+    use rand::Rng;
 
     #[test]
     fn gae_matches_the_reference() {
@@ -383,5 +455,69 @@ mod tests {
         .to_scalar::<f32>()
         .unwrap();
         assert!((loss - (-0.471_02)).abs() < 1e-4, "{loss}");
+    }
+
+    #[test]
+    fn hand_gradients_of_both_losses_are_candle_autodiffs() {
+        let cfg = PpoConfig {
+            hidden: vec![16, 12],
+            seed: 4,
+            ..PpoConfig::default()
+        };
+        let ppo = Ppo::new(cfg, 5, 2).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let mut t = |r: usize, c: usize, k: f32| {
+            let v: Vec<f32> = (0..r * c).map(|_| rng.random_range(-k..k)).collect();
+            Tensor::from_vec(v, (r, c), &Device::Cpu).unwrap()
+        };
+        let (obs, act, adv, ret) = (t(40, 5, 2.0), t(40, 2, 0.99), t(40, 1, 1.5), t(40, 1, 3.0));
+        // Old log-probabilities off by up to 0.4: ratios on both sides of the clip.
+        let lp = ppo.policy.net.log_prob(&obs, &act).unwrap();
+        let lp_old = (lp.detach() + t(40, 1, 0.4)).unwrap();
+        let clip = 0.2;
+        let mb = ppo
+            .minibatch_gradients(&obs, &act, &lp_old, &adv, &ret, clip)
+            .unwrap();
+        assert_eq!(
+            mb.logp.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            lp.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        );
+        let ratio = (&lp - &lp_old).unwrap().exp().unwrap();
+        let outside = ratio
+            .affine(1.0, -1.0)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .gt(clip)
+            .unwrap();
+        let n_out = outside.to_dtype(DType::F32).unwrap().sum_all().unwrap();
+        assert!(
+            n_out.to_scalar::<f32>().unwrap() >= 5.0,
+            "some ratios are clipped"
+        );
+
+        let want = clipped_policy_loss(&lp, &lp_old, &adv, clip).unwrap();
+        assert_eq!(
+            mb.policy_loss.to_scalar::<f32>().unwrap(),
+            want.to_scalar::<f32>().unwrap()
+        );
+        assert_same_gradients(
+            &ppo.pi_opt.vars,
+            &mb.policy_grads,
+            &want.backward().unwrap(),
+        );
+
+        let v_loss = (ppo.value.net.forward(&obs).unwrap() - &ret)
+            .unwrap()
+            .sqr()
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        assert_eq!(
+            mb.value_loss.to_scalar::<f32>().unwrap(),
+            v_loss.to_scalar::<f32>().unwrap()
+        );
+        let want = (&v_loss * ppo.cfg.value_coef).unwrap().backward().unwrap();
+        assert_same_gradients(&ppo.v_opt.vars, &mb.value_grads, &want);
     }
 }
