@@ -414,8 +414,7 @@ impl Ppo {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testutil::assert_same_gradients;
-    use rand::Rng;
+    use crate::testutil::{assert_same_gradients, uniform_tensors};
 
     #[test]
     fn gae_matches_the_reference() {
@@ -465,11 +464,7 @@ mod tests {
             ..PpoConfig::default()
         };
         let ppo = Ppo::new(cfg, 5, 2).unwrap();
-        let mut rng = ChaCha8Rng::seed_from_u64(8);
-        let mut t = |r: usize, c: usize, k: f32| {
-            let v: Vec<f32> = (0..r * c).map(|_| rng.random_range(-k..k)).collect();
-            Tensor::from_vec(v, (r, c), &Device::Cpu).unwrap()
-        };
+        let mut t = uniform_tensors(8);
         let (obs, act, adv, ret) = (t(40, 5, 2.0), t(40, 2, 0.99), t(40, 1, 1.5), t(40, 1, 3.0));
         // Old log-probabilities off by up to 0.4: ratios on both sides of the clip.
         let lp = ppo.policy.net.log_prob(&obs, &act).unwrap();

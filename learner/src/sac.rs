@@ -524,7 +524,7 @@ impl Sac {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testutil::assert_same_gradients;
+    use crate::testutil::{assert_same_gradients, uniform_tensors};
 
     fn col(v: &[f32]) -> Tensor {
         Tensor::from_slice(v, (v.len(), 1), &Device::Cpu).unwrap()
@@ -633,11 +633,7 @@ mod tests {
             ..SacConfig::default()
         };
         let sac = Sac::new(cfg, 5, 2).unwrap();
-        let mut rng = ChaCha8Rng::seed_from_u64(9);
-        let mut t = |r: usize, c: usize, k: f32| {
-            let v: Vec<f32> = (0..r * c).map(|_| rng.random_range(-k..k)).collect();
-            Tensor::from_vec(v, (r, c), &Device::Cpu).unwrap()
-        };
+        let mut t = uniform_tensors(9);
         let (obs, act, y, eps) = (t(32, 5, 2.0), t(32, 2, 0.99), t(32, 1, 3.0), t(32, 2, 1.5));
 
         let (loss, got) = sac.critic_gradients(&obs, &act, &y).unwrap();

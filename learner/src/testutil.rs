@@ -1,7 +1,8 @@
 //! Helpers of the learner's unit tests.
 
 use candle_core::backprop::GradStore;
-use candle_core::{Tensor, Var};
+use candle_core::{Device, Tensor, Var};
+use rand::{Rng, SeedableRng};
 
 /// Every variable's gradient in `got` is candle autodiff's in `want`, within a
 /// tolerance relative to the largest entry; `vars` names them.
@@ -24,5 +25,14 @@ pub fn assert_same_gradients(vars: &[(String, Var)], got: &GradStore, want: &Gra
             worst <= 1e-4 * scale,
             "{name}: hand gradient off by {worst} (largest entry {scale})"
         );
+    }
+}
+
+/// A maker of `[rows, cols]` tensors uniform in `(-k, k)`, from a seeded generator.
+pub fn uniform_tensors(seed: u64) -> impl FnMut(usize, usize, f32) -> Tensor {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    move |rows, cols, k| {
+        let v: Vec<f32> = (0..rows * cols).map(|_| rng.random_range(-k..k)).collect();
+        Tensor::from_vec(v, (rows, cols), &Device::Cpu).unwrap()
     }
 }
