@@ -119,18 +119,20 @@ fn surrogates(
     Ok((unclipped, clipped))
 }
 
-/// The gradient of [`clipped_policy_loss`] with respect to `logp_new` (`[batch, 1]`):
+/// [`clipped_policy_loss`] and its gradient with respect to `logp_new` (`[batch, 1]`):
 /// `-r A / batch` where the unclipped term is the minimum, else 0 (where both are equal
 /// and the clip is active, `A` is 0).
-pub fn clipped_policy_loss_grad(
+pub fn clipped_policy_loss_and_grad(
     logp_new: &Tensor,
     logp_old: &Tensor,
     adv: &Tensor,
     clip: f64,
-) -> Result<Tensor> {
+) -> Result<(Tensor, Tensor)> {
     let (unclipped, clipped) = surrogates(logp_new, logp_old, adv, clip)?;
+    let loss = unclipped.minimum(&clipped)?.mean_all()?.neg()?;
     let taken = unclipped.le(&clipped)?.to_dtype(DType::F32)?;
-    (unclipped * taken)? * (-1.0 / logp_new.dim(0)? as f64)
+    let grad = ((unclipped * taken)? * (-1.0 / logp_new.dim(0)? as f64))?;
+    Ok((loss, grad))
 }
 
 /// One minibatch's log-probabilities, losses and gradients.
@@ -261,8 +263,7 @@ impl Ppo {
         clip: f64,
     ) -> Result<Minibatch> {
         let (logp, tape) = self.policy.net.log_prob_taped(obs, act)?;
-        let policy_loss = clipped_policy_loss(&logp, logp_old, adv, clip)?;
-        let dlogp = clipped_policy_loss_grad(&logp, logp_old, adv, clip)?;
+        let (policy_loss, dlogp) = clipped_policy_loss_and_grad(&logp, logp_old, adv, clip)?;
         let mut policy_grads = GradStore::default();
         self.policy
             .net
