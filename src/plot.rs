@@ -258,6 +258,25 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     Ok(())
 }
 
+/// Line colours that read on white (matplotlib's "tab10"; plotters' `Palette99` gives the
+/// third method a pale yellow), repeated past ten methods.
+fn line_color(k: usize) -> RGBColor {
+    const TAB10: [(u8, u8, u8); 10] = [
+        (31, 119, 180),
+        (255, 127, 14),
+        (44, 160, 44),
+        (214, 39, 40),
+        (148, 103, 189),
+        (140, 86, 75),
+        (227, 119, 194),
+        (127, 127, 127),
+        (188, 189, 34),
+        (23, 190, 207),
+    ];
+    let (r, g, b) = TAB10[k % TAB10.len()];
+    RGBColor(r, g, b)
+}
+
 fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing: {e:?}")
 }
@@ -276,6 +295,8 @@ fn draw(
         y0 = y0.min(f[fig].0 - f[fig].1);
         y1 = y1.max(f[fig].0 + f[fig].1);
     }
+    // A rate's band stops at 0 and 1: mean ± std may pass them, the rate cannot.
+    let in_range = |v: f64| if fig == 1 { v.clamp(0.0, 1.0) } else { v };
     if fig == 1 {
         (y0, y1) = (0.0, 1.0);
     }
@@ -297,16 +318,16 @@ fn draw(
         .draw()
         .map_err(draw_err)?;
     for (k, (method, curve)) in curves.iter().enumerate() {
-        let color = Palette99::pick(k).to_rgba();
+        let color = line_color(k);
         let mut band: Vec<(f64, f64)> = curve
             .iter()
-            .map(|(s, f)| (*s as f64, f[fig].0 + f[fig].1))
+            .map(|(s, f)| (*s as f64, in_range(f[fig].0 + f[fig].1)))
             .collect();
         band.extend(
             curve
                 .iter()
                 .rev()
-                .map(|(s, f)| (*s as f64, f[fig].0 - f[fig].1)),
+                .map(|(s, f)| (*s as f64, in_range(f[fig].0 - f[fig].1))),
         );
         chart
             .draw_series(std::iter::once(Polygon::new(band, color.mix(0.2).filled())))
