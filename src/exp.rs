@@ -76,13 +76,23 @@ pub struct Cell {
     pub args: Vec<String>,
 }
 
-fn flag_value(v: &toml::Value) -> Result<String> {
+/// A grid value as text (in run names and flags).
+fn value_text(v: &toml::Value) -> Result<String> {
     Ok(match v {
         toml::Value::String(s) => s.clone(),
         toml::Value::Integer(i) => i.to_string(),
         toml::Value::Float(f) => f.to_string(),
         toml::Value::Boolean(b) => b.to_string(),
         other => bail!("grid values must be strings, numbers or booleans, not {other}"),
+    })
+}
+
+/// The flag for `key = value`: `--key=value`; a boolean is the bare switch or nothing.
+fn flag(key: &str, v: &toml::Value) -> Result<Option<String>> {
+    Ok(match v {
+        toml::Value::Boolean(true) => Some(format!("--{key}")),
+        toml::Value::Boolean(false) => None,
+        v => Some(format!("--{key}={}", value_text(v)?)),
     })
 }
 
@@ -115,13 +125,13 @@ impl Grid {
     /// Every run, sorted by name.
     pub fn cells(&self) -> Result<Vec<Cell>> {
         // Every combination of the [grid] flags.
-        let mut combos: Vec<Vec<(String, String)>> = vec![vec![]];
+        let mut combos: Vec<Vec<(&str, &toml::Value)>> = vec![vec![]];
         for (key, values) in &self.grid {
             let mut next = Vec::new();
             for c in &combos {
                 for v in values {
                     let mut c = c.clone();
-                    c.push((key.clone(), flag_value(v)?));
+                    c.push((key, v));
                     next.push(c);
                 }
             }
@@ -139,7 +149,12 @@ impl Grid {
                 for combo in &combos {
                     let mut method = format!("{algo}-{reward}");
                     for (k, v) in combo {
-                        method.push_str(&format!("-{k}={v}"));
+                        method.push_str(&format!("-{k}={}", value_text(v)?));
+                    }
+                    if method.contains(['/', '\\']) || method.contains("..") {
+                        bail!(
+                            "run name {method:?} would not be one folder: algorithms, rewards and [grid] values may not hold '/', '\\' or '..' (a path can go in [set])"
+                        );
                     }
                     for seed in &self.seeds {
                         let mut args = vec![
@@ -149,10 +164,10 @@ impl Grid {
                             format!("--steps={steps}"),
                         ];
                         for (k, v) in self.set.iter() {
-                            args.push(format!("--{k}={}", flag_value(v)?));
+                            args.extend(flag(k, v)?);
                         }
                         for (k, v) in combo {
-                            args.push(format!("--{k}={v}"));
+                            args.extend(flag(k, v)?);
                         }
                         cells.push(Cell {
                             name: format!("{method}-s{seed}"),
@@ -165,8 +180,35 @@ impl Grid {
             }
         }
         cells.sort_by(|a, b| a.name.cmp(&b.name));
+        // NOTE: two runs in one folder would overwrite each other.
+        if let Some(w) = cells.windows(2).find(|w| w[0].name == w[1].name) {
+            bail!(
+                "the grid has run {} twice: a value repeats in algos, rewards, seeds or [grid]",
+                w[0].name
+            );
+        }
         Ok(cells)
     }
+}
+
+/// Every run's flags, checked as `pbrl train` will parse them, so that a mistake in the
+/// grid is reported once, before anything starts, not by every run as it fails.
+fn check_flags(cells: &[Cell]) -> Result<()> {
+    for c in cells {
+        let line = ["pbrl", "train"]
+            .into_iter()
+            .map(String::from)
+            .chain(c.args.iter().cloned());
+        if let Err(e) = <crate::Cli as clap::Parser>::try_parse_from(line) {
+            bail!(
+                "run {} would not start (flags {}):\n{}",
+                c.name,
+                c.args.join(" "),
+                e.render()
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Parse `i/n`.
@@ -233,8 +275,9 @@ pub fn run(args: RunArgs) -> Result<()> {
         std::fs::copy(&args.grid, &kept)
             .with_context(|| format!("copying the grid into {}", out.display()))?;
     }
-    let cells: Vec<Cell> = grid
-        .cells()?
+    let all = grid.cells()?;
+    check_flags(&all)?;
+    let cells: Vec<Cell> = all
         .into_iter()
         .enumerate()
         .filter(|(k, _)| k % n == i)
@@ -287,9 +330,16 @@ pub fn run(args: RunArgs) -> Result<()> {
             // NOTE: its own process group: a Ctrl-C reaches the runner, which forwards one
             // stop to each run (a second signal would make a run exit without checkpoint).
             std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
-            let child = cmd
-                .spawn()
-                .with_context(|| format!("starting run {}", cell.name))?;
+            let child = match cmd.spawn() {
+                Ok(child) => child,
+                Err(e) => {
+                    // NOTE: the other runs go on (e.g. the executable was rebuilt under a
+                    // long grid); this one is reported with the failures.
+                    println!("{}: could not start {}: {e}", cell.name, exe.display());
+                    failed.push(cell.name.clone());
+                    continue;
+                }
+            };
             println!(
                 "{}: {} (log in {})",
                 cell.name,
@@ -323,7 +373,7 @@ pub fn run(args: RunArgs) -> Result<()> {
                         r.cell.name,
                         r.started.elapsed().as_secs_f64()
                     );
-                } else if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                } else if stop.load(std::sync::atomic::Ordering::Relaxed) && status.success() {
                     println!("{}: stopped with a checkpoint", r.cell.name);
                 } else {
                     println!(
@@ -434,6 +484,42 @@ preset = ["default", "paper"]
         assert_eq!(
             run_id("t", "sac-true-preset=paper-s2"),
             "t-sac-true-preset_paper-s2"
+        );
+        check_flags(&cells).unwrap();
+    }
+
+    fn grid(extra: &str) -> Result<Vec<Cell>> {
+        let g: Grid = toml::from_str(&format!(
+            "name = \"t\"\nalgos = [\"sac\"]\nrewards = [\"true\"]\nsteps = 100\n{extra}"
+        ))?;
+        g.cells()
+    }
+
+    #[test]
+    fn grid_mistakes_are_refused_before_any_run_starts() {
+        // A boolean is the bare switch, or nothing.
+        let cells = grid("seeds = [1]\n[grid]\nsync = [true, false]").unwrap();
+        let sync = |name: &str| {
+            let c = cells.iter().find(|c| c.name == name).unwrap();
+            c.args.contains(&"--sync".to_string())
+        };
+        assert!(sync("sac-true-sync=true-s1"));
+        assert!(!sync("sac-true-sync=false-s1"));
+        check_flags(&cells).unwrap();
+        // Two runs in one folder.
+        let e = grid("seeds = [1, 1]").unwrap_err().to_string();
+        assert!(e.contains("sac-true-s1 twice"), "{e}");
+        // A run name that would be a path.
+        let e = grid("seeds = [1]\n[grid]\nworld = [\"w/a.json\"]")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("would not be one folder"), "{e}");
+        // A flag `pbrl train` does not know, named with the run, before anything starts.
+        let cells = grid("seeds = [1]\n[set]\nlog_every = 5").unwrap();
+        let e = check_flags(&cells).unwrap_err().to_string();
+        assert!(
+            e.contains("run sac-true-s1") && e.contains("log_every"),
+            "{e}"
         );
     }
 }

@@ -57,6 +57,9 @@ fn main() -> Result<()> {
         }
         _ => None,
     };
+    // NOTE: the error that ends a run goes to its log too (a run under `pbrl exp` has no
+    // terminal; the runner points at the log).
+    let mut error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
     let filter =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
     tracing_subscriber::registry()
@@ -87,7 +90,7 @@ fn main() -> Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
-    runtime.block_on(async {
+    let result = runtime.block_on(async {
         match command {
             Command::Train(a) => train::train(a).await,
             Command::Learner(a) => train::learner(a).await,
@@ -96,5 +99,10 @@ fn main() -> Result<()> {
                 unreachable!("handled above")
             }
         }
-    })
+    });
+    if let (Err(e), Some(f)) = (&result, error_log.as_mut()) {
+        use std::io::Write;
+        let _ = writeln!(f, "error: {e:#}");
+    }
+    result
 }

@@ -13,7 +13,8 @@
 //! Every file is written to a temporary name, synced and renamed; a checkpoint directory is
 //! complete only with its `manifest.json`, which lists every file it needs (its own and the
 //! replay segments) with size and CRC-32. A checkpoint that fails those checks is reported
-//! and the previous one is used.
+//! and the previous one is used. A checkpoint written again at the same env steps replaces
+//! the old one by renames (the old one is `<env steps>.old` until the new one is in place).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -152,6 +153,10 @@ impl RunFolder {
             .with_context(|| format!("writing {}", tmp.display()))?;
         std::fs::rename(&tmp, path)
             .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+        // The rename itself lives in the directory: synced too, or a crash may undo it.
+        if let Some(parent) = path.parent() {
+            sync_dir(parent)?;
+        }
         Ok(FileSum {
             path: self.relative(path),
             bytes: bytes.len() as u64,
@@ -263,12 +268,24 @@ impl RunFolder {
             serde_json::to_string_pretty(&manifest)?.as_bytes(),
         )?;
         sync_dir(&tmp)?;
+        // NOTE: a checkpoint at the same step (a run's end right after a periodic one) is
+        // replaced by renames alone: until the new one is in place, the old one stays
+        // readable as `<steps>.old`, which `checkpoint_dirs` lists too.
+        let old = dir.with_extension("old");
         if dir.exists() {
-            std::fs::remove_dir_all(&dir).with_context(|| format!("removing {}", dir.display()))?;
+            if old.exists() {
+                std::fs::remove_dir_all(&old)
+                    .with_context(|| format!("removing {}", old.display()))?;
+            }
+            std::fs::rename(&dir, &old)
+                .with_context(|| format!("renaming {} to {}", dir.display(), old.display()))?;
         }
         std::fs::rename(&tmp, &dir)
             .with_context(|| format!("renaming {} to {}", tmp.display(), dir.display()))?;
         sync_dir(&self.checkpoints())?;
+        if old.exists() {
+            std::fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+        }
         self.prune(keep)?;
         Ok(manifest)
     }
@@ -281,27 +298,40 @@ impl RunFolder {
         }
     }
 
-    /// Complete checkpoint directories, newest first.
+    /// Checkpoint directories (renamed into place, so complete unless torn), newest first;
+    /// a `<steps>.old` left by a replacement comes after its `<steps>`.
     fn checkpoint_dirs(&self) -> Result<Vec<PathBuf>> {
         let Ok(entries) = std::fs::read_dir(self.checkpoints()) else {
             return Ok(Vec::new());
         };
-        let mut dirs: Vec<(u64, PathBuf)> = entries
+        let mut dirs: Vec<(u64, bool, PathBuf)> = entries
             .filter_map(|e| e.ok())
             .filter_map(|e| {
-                let n = e.file_name().to_str()?.parse::<u64>().ok()?;
-                Some((n, e.path()))
+                let name = e.file_name().to_str()?.to_string();
+                let (steps, old) = match name.strip_suffix(".old") {
+                    Some(steps) => (steps.to_string(), true),
+                    None => (name, false),
+                };
+                Some((steps.parse::<u64>().ok()?, old, e.path()))
             })
             .collect();
-        dirs.sort_by_key(|d| std::cmp::Reverse(d.0));
-        Ok(dirs.into_iter().map(|(_, p)| p).collect())
+        dirs.sort_by_key(|d| (std::cmp::Reverse(d.0), d.1));
+        Ok(dirs.into_iter().map(|(_, _, p)| p).collect())
     }
 
     fn load(&self, dir: &Path) -> Result<Checkpoint> {
         let text = std::fs::read_to_string(dir.join("manifest.json"))
             .with_context(|| format!("reading {}/manifest.json", dir.display()))?;
-        let manifest: Manifest = serde_json::from_str(&text)
+        let mut manifest: Manifest = serde_json::from_str(&text)
             .with_context(|| format!("parsing {}/manifest.json", dir.display()))?;
+        // NOTE: its own files are in the directory it is in now (`<steps>.old` after an
+        // interrupted replacement), whatever name it was written under.
+        for s in &mut manifest.files {
+            let name = Path::new(&s.path)
+                .file_name()
+                .with_context(|| format!("{}/manifest.json names {:?}", dir.display(), s.path))?;
+            s.path = self.relative(&dir.join(name));
+        }
         for s in manifest.files.iter().chain(&manifest.replay) {
             self.read_checked(s)?;
         }
@@ -442,5 +472,20 @@ mod tests {
             f.latest_checkpoint().unwrap().unwrap().manifest.env_steps,
             300
         );
+        // A second checkpoint at the newest step replaces it and leaves no `.old`.
+        let need = replay[1..3].to_vec();
+        f.write_checkpoint(300, 9, &[("policy", &vm)], b"again", need, 2)
+            .unwrap();
+        assert_eq!(names(f.checkpoints()), ["000000000300", "000000000400"]);
+        let c = f.latest_checkpoint().unwrap().unwrap();
+        assert_eq!((c.manifest.env_steps, c.manifest.version), (300, 9));
+        // Killed between the replacement's two renames: the old one is still found.
+        std::fs::rename(
+            f.checkpoints().join("000000000300"),
+            f.checkpoints().join("000000000300.old"),
+        )
+        .unwrap();
+        let c = f.latest_checkpoint().unwrap().unwrap();
+        assert_eq!(f.read(&c, "state.bin").unwrap(), b"again");
     }
 }

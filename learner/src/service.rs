@@ -589,6 +589,10 @@ fn write_checkpoint(
         backbone: state,
     };
     let bytes = bincode::serde::encode_to_vec(&saved, bincode::config::standard())?;
+    // The checkpoint counts the curve's rows: they must be on disk before it is.
+    if let Some(f) = &curve.file {
+        f.sync_data().context("syncing the curve")?;
+    }
     folder.write_checkpoint(
         progress.env_steps,
         progress.version,
