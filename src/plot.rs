@@ -295,9 +295,10 @@ fn draw(
         y0 = y0.min(f[fig].0 - f[fig].1);
         y1 = y1.max(f[fig].0 + f[fig].1);
     }
-    // A rate's band stops at 0 and 1: mean ± std may pass them, the rate cannot.
-    let in_range = |v: f64| if fig == 1 { v.clamp(0.0, 1.0) } else { v };
-    if fig == 1 {
+    // A rate's axis and band stop at 0 and 1: mean ± std may pass them, the rate cannot.
+    let rate = fig == 1;
+    let in_range = |v: f64| if rate { v.clamp(0.0, 1.0) } else { v };
+    if rate {
         (y0, y1) = (0.0, 1.0);
     }
     let pad = ((y1 - y0) * 0.05).max(1e-3);

@@ -267,7 +267,7 @@ impl RunFolder {
             &tmp.join("manifest.json"),
             serde_json::to_string_pretty(&manifest)?.as_bytes(),
         )?;
-        sync_dir(&tmp)?;
+        // (`write_atomic` synced `tmp` itself, with the network files' entries in it.)
         // NOTE: a checkpoint at the same step (a run's end right after a periodic one) is
         // replaced by renames alone: until the new one is in place, the old one stays
         // readable as `<steps>.old`, which `checkpoint_dirs` lists too.
