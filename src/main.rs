@@ -60,8 +60,11 @@ fn main() -> Result<()> {
     // NOTE: the error that ends a run goes to its log too (a run under `pbrl exp` has no
     // terminal; the runner points at the log).
     let mut error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
-    let filter =
-        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    // NOTE: by default pbrl's own progress and every crate's warnings; RUST_LOG brings the
+    // rest back (zenoh's INFO lines, the resolved config at debug).
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        "warn,pbrl=info,pbrl_common=info,pbrl_actor=info,pbrl_learner=info,pbrl_teacher=info".into()
+    });
     tracing_subscriber::registry()
         .with(filter)
         .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr))
@@ -77,6 +80,13 @@ fn main() -> Result<()> {
     // (`shared/perf.md`), so pbrl runs it with one thread unless the user says otherwise.
     if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
         std::env::set_var("CANDLE_NUM_THREADS", "1");
+    }
+    // NOTE: the same for candle's matmul: it asks rayon's thread count at every call, which
+    // with RAYON_NUM_THREADS unset parses /proc/cpuinfo (thousands of opens a second in a
+    // run), and its 2-thread gemm spins against zenoh's and the actors' threads. One thread
+    // per service (`pbrl bench learner` sets its own); children of `exp run` inherit it.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
     }
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),

@@ -2,9 +2,7 @@
 
 use std::time::Duration;
 
-use pbrl_common::bus::{
-    wait_until, TrajectoryPublisher, TrajectorySubscriber, WeightsClient, WeightsServer,
-};
+use pbrl_common::bus::{wait_until, Inbox, TrajectoryPublisher, WeightsClient, WeightsServer};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{self, Body, Tensor, Weights};
@@ -29,6 +27,7 @@ fn weights(version: u64) -> Weights {
         obs_clip: 10.0,
         random_actions: false,
         episodes_per_actor: 0,
+        acks: Vec::new(),
     }
 }
 
@@ -56,8 +55,8 @@ async fn learner_and_actors_exchange_weights_and_trajectories_through_a_router()
     let actor_a = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
 
     let server = WeightsServer::new(&learner, &keys).await.unwrap();
-    let trajectories = TrajectorySubscriber::new(&learner, &keys).await.unwrap();
-    let client_a = WeightsClient::new(&actor_a, &keys).await.unwrap();
+    let mut trajectories = Inbox::trajectories(&learner, &keys).await.unwrap();
+    let mut client_a = WeightsClient::new(&actor_a, &keys).await.unwrap();
     // Nobody has published yet: a query finds nothing.
     assert!(client_a
         .fetch(&actor_a, Duration::from_millis(500))
@@ -90,18 +89,19 @@ async fn learner_and_actors_exchange_weights_and_trajectories_through_a_router()
     assert_eq!(late.version, 2);
 
     // Trajectories from both actors reach the learner, tagged with their actor.
-    let pub_a = TrajectoryPublisher::new(&actor_a, &keys, 0).await.unwrap();
-    let pub_b = TrajectoryPublisher::new(&actor_b, &keys, 1).await.unwrap();
+    let mut pub_a = TrajectoryPublisher::new(&actor_a, &keys, 0).await.unwrap();
+    let mut pub_b = TrajectoryPublisher::new(&actor_b, &keys, 1).await.unwrap();
     wait_until(LIMIT, || pub_a.has_subscribers()).await.unwrap();
     wait_until(LIMIT, || pub_b.has_subscribers()).await.unwrap();
     for s in 0..5 {
-        pub_a.publish(trajectory(s), false).await.unwrap();
-        pub_b.publish(trajectory(100 + s), false).await.unwrap();
+        pub_a.publish(trajectory(s)).await.unwrap();
+        pub_b.publish(trajectory(100 + s)).await.unwrap();
     }
     let mut seen = Vec::new();
     for _ in 0..10 {
         let t = trajectories.next().await.unwrap();
         assert_eq!(t.trajectory.seed >= 100, t.actor == 1);
+        assert_eq!(t.seq, t.trajectory.seed % 100, "numbered per actor from 0");
         seen.push(t.trajectory.seed);
     }
     seen.sort();
@@ -109,16 +109,45 @@ async fn learner_and_actors_exchange_weights_and_trajectories_through_a_router()
     assert_eq!(trajectories.dropped.get(), 0);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn bad_messages_are_dropped_counted_and_the_receiver_keeps_going() {
-    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
-    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
-    let keys = Keys::new("bad-input").unwrap();
-    let learner = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let actor = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let trajectories = TrajectorySubscriber::new(&learner, &keys).await.unwrap();
-    let raw = actor
-        .declare_publisher(keys.trajectory(7))
+/// A wire envelope by hand (format, run, body), as a foreign client could send it.
+fn envelope(format: u16, run: &str, body: &Body) -> Vec<u8> {
+    bincode::serde::encode_to_vec((format, run, body), bincode::config::standard()).unwrap()
+}
+
+/// Every way a message for `good`'s key can be bad: (what, payload).
+fn bad_payloads(
+    run: &str,
+    good: &Body,
+    wrong_dims: Option<Body>,
+    nan: Option<Body>,
+    other: Body,
+) -> Vec<(&'static str, Vec<u8>)> {
+    let mut bad = vec![
+        ("garbage", vec![1u8, 2, 3, 250, 251, 252]),
+        ("empty", Vec::new()),
+        ("another format", envelope(wire::WIRE_FORMAT + 1, run, good)),
+        ("another run", wire::encode("another-run", good)),
+        ("64 MB", vec![7u8; 64 << 20]),
+        ("another kind of message", wire::encode(run, &other)),
+    ];
+    if let Some(b) = wrong_dims {
+        bad.push(("wrong dimensions", wire::encode(run, &b)));
+    }
+    if let Some(b) = nan {
+        bad.push(("NaN", wire::encode(run, &b)));
+    }
+    // The hand-made envelope is the real one: with this build's format it decodes.
+    assert_eq!(
+        wire::decode(run, &envelope(wire::WIRE_FORMAT, run, good)).unwrap(),
+        *good
+    );
+    bad
+}
+
+/// Put every payload on `key` from a foreign session, then `good`.
+async fn spray(foreign: &zenoh::Session, key: &str, bad: &[(&str, Vec<u8>)], good: Vec<u8>) {
+    let raw = foreign
+        .declare_publisher(key.to_string())
         .congestion_control(zenoh::qos::CongestionControl::Block)
         .await
         .unwrap();
@@ -127,32 +156,164 @@ async fn bad_messages_are_dropped_counted_and_the_receiver_keeps_going() {
     })
     .await
     .unwrap();
+    for (_, bytes) in bad {
+        raw.put(bytes.clone()).await.unwrap();
+    }
+    raw.put(good).await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_messages_on_every_key_are_dropped_counted_and_the_receivers_keep_going() {
+    use pbrl_common::wire::{EvalRequest, EvalResult, Stop, TrajectoryMsg};
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let _router = ConnectArgs::router_on(&endpoint).open().await.unwrap();
+    let run = "bad-input";
+    let keys = Keys::new(run).unwrap();
+    let learner = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let actor = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let foreign = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
+    let mut trajectories = Inbox::trajectories(&learner, &keys).await.unwrap();
+    let mut results = Inbox::eval_results(&learner, &keys).await.unwrap();
+    let mut requests = Inbox::eval_requests(&actor, &keys, 0).await.unwrap();
+    let mut stops = Inbox::stops(&actor, &keys).await.unwrap();
+    let mut weights_in = WeightsClient::new(&actor, &keys).await.unwrap();
+    let stop = || {
+        Body::Stop(Stop {
+            env_steps: 1,
+            version: 1,
+        })
+    };
+
+    // Trajectories.
+    let msg = |t: Trajectory| {
+        Body::Trajectory(Box::new(TrajectoryMsg {
+            actor: 7,
+            incarnation: 1,
+            seq: 0,
+            trajectory: t,
+        }))
+    };
     let mut nan = trajectory(1);
     nan.obs[3] = f32::NAN;
     let mut short = trajectory(2);
     short.actions.pop();
-    let good = trajectory(3);
-    let msg = |t: Trajectory| {
-        wire::encode(
-            "bad-input",
-            &Body::Trajectory(Box::new(wire::TrajectoryMsg {
-                actor: 7,
-                eval: false,
-                trajectory: t,
-            })),
-        )
-    };
-    raw.put(vec![1u8, 2, 3]).await.unwrap(); // does not decode
-    raw.put(msg(nan)).await.unwrap(); // holds NaN
-    raw.put(msg(short)).await.unwrap(); // wrong dimensions
-    raw.put(wire::encode("another-run", &Body::Stop))
-        .await
-        .unwrap(); // another run
-    raw.put(msg(good)).await.unwrap();
+    let bad = bad_payloads(
+        run,
+        &msg(trajectory(3)),
+        Some(msg(short)),
+        Some(msg(nan)),
+        stop(),
+    );
+    spray(
+        &foreign,
+        &keys.trajectory(7),
+        &bad,
+        wire::encode(run, &msg(trajectory(3))),
+    )
+    .await;
     let t = trajectories.next().await.unwrap();
     assert_eq!(
         t.trajectory.seed, 3,
         "the good message after the bad ones arrives"
     );
-    assert_eq!(trajectories.dropped.get(), 4);
+    assert_eq!(trajectories.dropped.get(), bad.len() as u64);
+
+    // Weights.
+    let mut short = weights(5);
+    short.obs_mean.pop();
+    let mut nan = weights(5);
+    nan.tensors[0].data[17] = f32::NAN;
+    let bad = bad_payloads(
+        run,
+        &Body::Weights(weights(5)),
+        Some(Body::Weights(short)),
+        Some(Body::Weights(nan)),
+        stop(),
+    );
+    spray(
+        &foreign,
+        &keys.weights(),
+        &bad,
+        wire::encode(run, &Body::Weights(weights(5))),
+    )
+    .await;
+    assert_eq!(weights_in.next().await.unwrap().version, 5);
+    assert_eq!(weights_in.dropped.get(), bad.len() as u64);
+
+    // Evaluation requests.
+    let request = |w: Weights| {
+        Body::EvalRequest(Box::new(EvalRequest {
+            id: 9,
+            actor: 0,
+            weights: w,
+            seeds: vec![1, 2],
+            sampled: true,
+        }))
+    };
+    let mut short = weights(6);
+    short.tensors[0].shape = vec![3, 3];
+    let mut nan = weights(6);
+    nan.obs_var[0] = f32::INFINITY;
+    let bad = bad_payloads(
+        run,
+        &request(weights(6)),
+        Some(request(short)),
+        Some(request(nan)),
+        stop(),
+    );
+    spray(
+        &foreign,
+        &keys.eval_request(0),
+        &bad,
+        wire::encode(run, &request(weights(6))),
+    )
+    .await;
+    assert_eq!(requests.next().await.unwrap().id, 9);
+    assert_eq!(requests.dropped.get(), bad.len() as u64);
+
+    // Evaluation results.
+    let result = |x: f32| {
+        Body::EvalResult(EvalResult {
+            id: 9,
+            actor: 0,
+            version: 6,
+            episodes: vec![pbrl_common::Outcome {
+                return_truth: x,
+                ..Default::default()
+            }],
+            sampled: Vec::new(),
+        })
+    };
+    let bad = bad_payloads(run, &result(1.0), None, Some(result(f32::NAN)), stop());
+    spray(
+        &foreign,
+        &keys.eval_result(0),
+        &bad,
+        wire::encode(run, &result(1.0)),
+    )
+    .await;
+    assert_eq!(results.next().await.unwrap().episodes[0].return_truth, 1.0);
+    assert_eq!(results.dropped.get(), bad.len() as u64);
+
+    // The stop: only a decoded stop of this run and format stops an actor.
+    let bad = bad_payloads(run, &stop(), None, None, Body::Weights(weights(1)));
+    spray(
+        &foreign,
+        &keys.stop(),
+        &bad,
+        wire::encode(
+            run,
+            &Body::Stop(Stop {
+                env_steps: 42,
+                version: 3,
+            }),
+        ),
+    )
+    .await;
+    assert_eq!(stops.next().await.unwrap().env_steps, 42);
+    assert!(
+        stops.try_next().is_none(),
+        "nothing bad got through as a stop"
+    );
+    assert_eq!(stops.dropped.get(), bad.len() as u64);
 }

@@ -39,6 +39,7 @@ fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
         actors: 2,
         episode_steps: pbrl_actor::runner::POINT_HORIZON,
         eval_episodes: 0,
+        eval_sampled: false,
         checkpoint_every: 0,
         checkpoint_secs: 0,
         keep_checkpoints: 2,
@@ -112,7 +113,7 @@ async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_sto
 
     // Wait until the learner has moved past its first versions, then add a late actor.
     let watcher = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
+    let mut weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
         .await
         .unwrap();
     let current = loop {
@@ -204,11 +205,12 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
     let (endpoint, _router) = router().await;
     let run = "eval-test";
     let watcher = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
-    let weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
+    let mut weights = WeightsClient::new(&watcher, &Keys::new(run).unwrap())
         .await
         .unwrap();
     let cfg = LearnerConfig {
         eval_episodes: 4,
+        eval_sampled: true,
         ..learner_config(run, Algo::Sac, 3_000)
     };
     let learner = learner(&endpoint, cfg).await;
@@ -227,6 +229,11 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
         assert_eq!(row.eval_version, row.policy_version, "row {k}");
         assert!(row.eval_return_truth.is_finite() && row.eval_return_truth < 0.0);
         assert!((0.0..=1.0).contains(&row.eval_success_rate));
+        assert!(
+            row.eval_sampled_return_truth.is_finite(),
+            "row {k} has its sampled evaluation"
+        );
+        assert!((0.0..=1.0).contains(&row.eval_sampled_success_rate));
     }
     for a in [actor_a, actor_b] {
         joined(a, 30).await;
@@ -239,10 +246,17 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
         actor: 0,
         weights: w,
         seeds: vec![service::EVAL_SEED_BASE, service::EVAL_SEED_BASE + 1],
+        sampled: true,
     };
     let a = runner::evaluate(None, &request, 0).unwrap();
     let b = runner::evaluate(None, &request, 1).unwrap();
     assert_eq!(a.episodes, b.episodes);
+    assert_eq!(a.sampled, b.sampled, "sampled noise follows from the seed");
+    assert_eq!(a.sampled.len(), 2);
+    assert_ne!(
+        a.episodes[0].return_truth, a.sampled[0].return_truth,
+        "the sampled episode is another episode"
+    );
     assert_eq!(a.version, request.weights.version);
     assert_ne!(
         a.episodes[0].return_truth, a.episodes[1].return_truth,

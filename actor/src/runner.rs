@@ -5,10 +5,8 @@ use std::future::Future;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use pbrl_common::bus::{
-    wait_until, MessagePublisher, MessageSubscriber, TrajectoryPublisher, WeightsClient,
-};
-use pbrl_common::wire::{Body, EvalRequest, EvalResult};
+use pbrl_common::bus::{wait_until, Inbox, MessagePublisher, TrajectoryPublisher, WeightsClient};
+use pbrl_common::wire::{Body, EvalRequest, EvalResult, Weights};
 use pbrl_common::{Keys, Trajectory};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -109,26 +107,38 @@ fn episode(
     Ok(t)
 }
 
-/// Run the deterministic evaluation episodes `req` asks for.
+/// The generator of an episode's sampling noise, from its seed.
+fn noise(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa0_c710_u64)
+}
+
+/// Run the evaluation episodes `req` asks for: every seed with the mean action and, if
+/// asked, again with sampled actions (noise from the seed, as in training).
 pub fn evaluate(
     world: Option<&mut FeedingWorld>,
     req: &EvalRequest,
     actor: u32,
 ) -> Result<EvalResult> {
     let policy = Policy::from_weights(&req.weights)?;
-    // NOTE: the mean action draws no noise; the generator is only a parameter.
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut world = world;
-    let episodes = req
-        .seeds
-        .iter()
-        .map(|&seed| Ok(episode(world.as_deref_mut(), &policy, seed, &mut rng, true)?.outcome))
-        .collect::<Result<Vec<_>>>()?;
+    let mut run = |deterministic: bool| {
+        req.seeds
+            .iter()
+            .map(|&seed| {
+                // NOTE: the mean action draws no noise; the generator is then unused.
+                let mut rng = noise(seed);
+                Ok(episode(world.as_deref_mut(), &policy, seed, &mut rng, deterministic)?.outcome)
+            })
+            .collect::<Result<Vec<_>>>()
+    };
+    let episodes = run(true)?;
+    let sampled = if req.sampled { run(false)? } else { Vec::new() };
     Ok(EvalResult {
         id: req.id,
         actor,
         version: policy.version,
         episodes,
+        sampled,
     })
 }
 
@@ -144,32 +154,60 @@ async fn answer(
     results.send(&Body::EvalResult(r)).await
 }
 
+/// The first wait for the next weights version before the actor asks for it and sends
+/// its unacknowledged trajectories again; it doubles up to [`RETRY_MAX`] while nothing
+/// comes.
+const RETRY_FIRST: Duration = Duration::from_secs(5);
+const RETRY_MAX: Duration = Duration::from_secs(60);
+
+/// Take `w` if it is newer than `policy`: forget the trajectories it acknowledges.
+fn adopt(
+    policy: &mut Policy,
+    w: &Weights,
+    publisher: &mut TrajectoryPublisher,
+    actor: u32,
+) -> Result<bool> {
+    publisher.acknowledge(&w.acks);
+    if w.version <= policy.version {
+        return Ok(false);
+    }
+    *policy = Policy::from_weights(w).with_context(|| format!("actor {actor}"))?;
+    // NOTE: until acknowledged, this version's episodes and the last one's are kept.
+    publisher.hold_at_most(2 * (w.episodes_per_actor as usize + 1));
+    Ok(true)
+}
+
 /// Run episodes until `shutdown` resolves or the learner says stop; run evaluation
-/// episodes when the learner asks.
+/// episodes when the learner asks. Nothing here blocks the bus: every subscription is an
+/// [`Inbox`], drained between episodes and while the actor waits for weights.
 pub async fn run(
     cfg: ActorConfig,
     session: Session,
     shutdown: impl Future<Output = ()>,
 ) -> Result<()> {
     let keys = Keys::new(&cfg.run)?;
-    let weights = WeightsClient::new(&session, &keys).await?;
-    let publisher = TrajectoryPublisher::new(&session, &keys, cfg.id).await?;
-    let eval_requests = MessageSubscriber::new(&session, &keys, keys.eval_request(cfg.id)).await?;
+    let mut weights = WeightsClient::new(&session, &keys).await?;
+    let mut publisher = TrajectoryPublisher::new(&session, &keys, cfg.id).await?;
+    let mut eval_requests = Inbox::eval_requests(&session, &keys, cfg.id).await?;
     let eval_results =
         MessagePublisher::new(&session, &keys, keys.eval_result(cfg.id), Priority::Data).await?;
-    let pick = |b: Body| match b {
-        Body::EvalRequest(r) => Some(r),
-        _ => None,
-    };
-    let stop = session
-        .declare_subscriber(keys.stop())
-        .await
-        .map_err(|e| anyhow::anyhow!("declaring the stop subscriber: {e}"))?;
+    let mut stops = Inbox::stops(&session, &keys).await?;
     tokio::pin!(shutdown);
+    let stopping = |episodes: u64, publisher: &TrajectoryPublisher, weights: &WeightsClient| {
+        tracing::info!(
+            actor = cfg.id,
+            episodes,
+            resent = publisher.resent,
+            forgotten = publisher.forgotten,
+            dropped = weights.dropped.get(),
+            "the learner says stop"
+        );
+    };
 
     // The current weights: asked for (an actor that joins late), else the next published.
     let first = tokio::select! {
         _ = &mut shutdown => return Ok(()),
+        s = stops.next() => { s?; stopping(0, &publisher, &weights); return Ok(()) }
         w = async {
             match weights.fetch(&session, Duration::from_secs(2)).await? {
                 Some(w) => Ok::<_, anyhow::Error>(w),
@@ -178,6 +216,7 @@ pub async fn run(
         } => w?,
     };
     let mut policy = Policy::from_weights(&first)?;
+    publisher.hold_at_most(2 * (first.episodes_per_actor as usize + 1));
     tracing::info!(
         actor = cfg.id,
         version = policy.version,
@@ -194,35 +233,59 @@ pub async fn run(
     };
     let mut episodes: u64 = 0;
     let mut on_version = 0u32;
+    let mut retry = RETRY_FIRST;
     loop {
-        if let Some(req) = eval_requests.try_next(pick)? {
+        if stops.try_next().is_some() {
+            stopping(episodes, &publisher, &weights);
+            return Ok(());
+        }
+        if let Some(req) = eval_requests.try_next() {
             answer(world.as_mut(), &req, cfg.id, &eval_results).await?;
             continue;
         }
         if let Some(w) = weights.newest() {
-            if w.version > policy.version {
-                policy = Policy::from_weights(&w).with_context(|| format!("actor {}", cfg.id))?;
+            if adopt(&mut policy, &w, &mut publisher, cfg.id)? {
                 on_version = 0;
+                retry = RETRY_FIRST;
             }
         }
         // Flow control: once this version's share of episodes is run, wait for the next.
         while policy.episodes_allowed > 0 && on_version >= policy.episodes_allowed {
             tokio::select! {
                 _ = &mut shutdown => return Ok(()),
-                _ = stop.recv_async() => {
-                    tracing::info!(actor = cfg.id, episodes, "the learner says stop");
+                s = stops.next() => {
+                    s?;
+                    stopping(episodes, &publisher, &weights);
                     return Ok(());
                 }
                 w = weights.next() => {
-                    let w = w?;
-                    if w.version > policy.version {
-                        policy = Policy::from_weights(&w).with_context(|| format!("actor {}", cfg.id))?;
+                    if adopt(&mut policy, &w?, &mut publisher, cfg.id)? {
                         on_version = 0;
+                        retry = RETRY_FIRST;
                     }
                 }
-                req = eval_requests.next(pick) => {
+                req = eval_requests.next() => {
                     let req = req?;
                     answer(world.as_mut(), &req, cfg.id, &eval_results).await?;
+                }
+                _ = tokio::time::sleep(retry) => {
+                    // NOTE: the next version is late. A weights message lost on the way is
+                    // asked for; trajectories lost on the way are sent again (the learner
+                    // takes each once). A learner that is only busy loses nothing by it.
+                    retry = (retry * 2).min(RETRY_MAX);
+                    let fetched = weights.fetch(&session, Duration::from_secs(2)).await?;
+                    if let Some(w) = fetched {
+                        if adopt(&mut policy, &w, &mut publisher, cfg.id)? {
+                            tracing::warn!(actor = cfg.id, version = policy.version, "weights arrived only when asked for");
+                            on_version = 0;
+                            retry = RETRY_FIRST;
+                            continue;
+                        }
+                    }
+                    let n = publisher.resend().await?;
+                    if n > 0 {
+                        tracing::debug!(actor = cfg.id, trajectories = n, "no new weights yet; sent the unacknowledged trajectories again");
+                    }
                 }
             }
         }
@@ -231,7 +294,7 @@ pub async fn run(
         // a gap) plays the same episodes as one never stopped, and episodes of a run get
         // distinct seeds (a 63-bit hash). Sampling noise restarts from the episode's seed.
         let seed = episode_seed(cfg.seed, cfg.id, policy.made_at, on_version);
-        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa0_c710_u64);
+        let mut rng = noise(seed);
         on_version += 1;
         episodes += 1;
         let trajectory =
@@ -240,11 +303,7 @@ pub async fn run(
         tokio::select! {
             biased;
             _ = &mut shutdown => return Ok(()),
-            r = publisher.publish(trajectory, false) => r?,
-        }
-        if let Ok(Some(_)) = stop.try_recv() {
-            tracing::info!(actor = cfg.id, episodes, "the learner says stop");
-            return Ok(());
+            r = publisher.publish(trajectory) => r?,
         }
     }
 }

@@ -8,7 +8,11 @@ use serde::{Deserialize, Serialize};
 use crate::trajectory::{Outcome, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 2;
+pub const WIRE_FORMAT: u16 = 3;
+
+/// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
+/// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
+pub const MAX_MESSAGE_BYTES: usize = 16 << 20;
 
 /// One named tensor of a network, row-major f32.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -39,14 +43,28 @@ pub struct Weights {
     /// Episodes each actor may run with this version before it waits for the next (0: no
     /// limit). The learner's flow control: actors never run far ahead of training.
     pub episodes_per_actor: u32,
+    /// Trajectories the learner holds, per actor: an actor forgets the ones acknowledged
+    /// and sends the others again if it waits too long for the next version.
+    pub acks: Vec<Ack>,
+}
+
+/// The learner holds every trajectory of actor `actor`'s `incarnation` below `next_seq`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Ack {
+    pub actor: u32,
+    pub incarnation: u64,
+    pub next_seq: u64,
 }
 
 /// A trajectory from an actor, tagged with the policy version that acted.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrajectoryMsg {
     pub actor: u32,
-    /// True for a deterministic evaluation episode.
-    pub eval: bool,
+    /// Drawn at random when the actor starts: sequence numbers restart with it.
+    pub incarnation: u64,
+    /// This actor's training trajectories, numbered from 0 (a trajectory sent again keeps
+    /// its number, so the learner takes it once).
+    pub seq: u64,
     pub trajectory: Trajectory,
 }
 
@@ -61,6 +79,8 @@ pub struct EvalRequest {
     pub weights: Weights,
     /// Episode seeds (the same at every evaluation of a run, so rows are comparable).
     pub seeds: Vec<u64>,
+    /// Also run every seed with sampled actions (the policy as it trains).
+    pub sampled: bool,
 }
 
 /// The outcome of each evaluation episode, in the order of the request's seeds.
@@ -70,7 +90,19 @@ pub struct EvalResult {
     pub actor: u32,
     /// The weights version that acted.
     pub version: u64,
+    /// With the mean action.
     pub episodes: Vec<Outcome>,
+    /// With sampled actions, the same seeds (empty unless asked for).
+    pub sampled: Vec<Outcome>,
+}
+
+/// The learner's word that the run is over: actors stop.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Stop {
+    /// Env steps the run reached.
+    pub env_steps: u64,
+    /// The last weights version published.
+    pub version: u64,
 }
 
 /// Everything that travels.
@@ -80,7 +112,7 @@ pub enum Body {
     Trajectory(Box<TrajectoryMsg>),
     EvalRequest(Box<EvalRequest>),
     EvalResult(EvalResult),
-    Stop,
+    Stop(Stop),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -93,6 +125,8 @@ struct Envelope {
 /// Why a message was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum WireError {
+    #[error("message of {bytes} bytes, more than the {MAX_MESSAGE_BYTES} any pbrl message needs")]
+    TooLarge { bytes: usize },
     #[error("message does not decode: {0}")]
     Decode(String),
     #[error("message format {found}, this build speaks {expected}")]
@@ -132,6 +166,9 @@ struct EnvelopeRef<'a> {
 
 /// Decode a message for run `run` and check it.
 pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
+    if bytes.len() > MAX_MESSAGE_BYTES {
+        return Err(WireError::TooLarge { bytes: bytes.len() });
+    }
     let (env, _): (Envelope, usize) =
         bincode::serde::decode_from_slice(bytes, bincode::config::standard())
             .map_err(|e| WireError::Decode(e.to_string()))?;
@@ -152,7 +189,7 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
         Body::Trajectory(t) => t.trajectory.validate()?,
         Body::EvalRequest(r) => r.weights.validate()?,
         Body::EvalResult(r) => {
-            for (k, o) in r.episodes.iter().enumerate() {
+            for (k, o) in r.episodes.iter().chain(&r.sampled).enumerate() {
                 let sums = [
                     o.return_truth,
                     o.return_human,
@@ -166,7 +203,7 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                 }
             }
         }
-        Body::Stop => {}
+        Body::Stop(_) => {}
     }
     Ok(env.body)
 }
@@ -227,6 +264,7 @@ mod tests {
             obs_clip: 10.0,
             random_actions: false,
             episodes_per_actor: 0,
+            acks: Vec::new(),
         }
     }
 
@@ -259,12 +297,20 @@ mod tests {
         let env = Envelope {
             format: WIRE_FORMAT + 1,
             run: "r".into(),
-            body: Body::Stop,
+            body: Body::Stop(Stop {
+                env_steps: 1,
+                version: 1,
+            }),
         };
         let bytes = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
         assert!(matches!(
             decode("r", &bytes),
-            Err(WireError::Format { found: 3, .. })
+            Err(WireError::Format { found, .. }) if found == WIRE_FORMAT + 1
+        ));
+        // Too large to be a pbrl message: refused unread.
+        assert!(matches!(
+            decode("r", &vec![0u8; MAX_MESSAGE_BYTES + 1]),
+            Err(WireError::TooLarge { .. })
         ));
     }
 }

@@ -8,13 +8,13 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::bus::{put_message, MessageSubscriber, TrajectorySubscriber, WeightsServer};
+use pbrl_common::bus::{put_message, Inbox, MessagePublisher, Receipts, WeightsServer};
 use pbrl_common::nets::export;
 use pbrl_common::nets::import;
-use pbrl_common::wire::{self, Body, EvalRequest, EvalResult, Weights};
+use pbrl_common::wire::{self, Body, EvalRequest, EvalResult, Stop, Weights};
 use pbrl_common::{Keys, RunningNorm, StepRewards, Trajectory};
 use serde::{Deserialize, Serialize};
-use zenoh::qos::{CongestionControl, Priority};
+use zenoh::qos::Priority;
 use zenoh::Session;
 
 use crate::ppo::{Ppo, PpoConfig, PpoState};
@@ -72,6 +72,8 @@ pub struct LearnerConfig {
     /// Deterministic evaluation episodes at each row of the curve (0: none; the row then
     /// has only the training episodes' figures).
     pub eval_episodes: u32,
+    /// Also evaluate the same seeds with sampled actions (the policy as it trains).
+    pub eval_sampled: bool,
     /// Env steps between checkpoints (taken at the next weights publication after the
     /// mark); 0: only when the run ends or is stopped.
     pub checkpoint_every: u64,
@@ -93,14 +95,9 @@ pub struct LearnerConfig {
 /// (`actor::runner::episode_seed`, below 2^63).
 pub const EVAL_SEED_BASE: u64 = 1 << 63;
 
-/// An evaluation unanswered this long is asked of another actor.
+/// An evaluation unanswered this long is asked again, of another actor if there is one
+/// (it is asked until answered; a row waits for its evaluation).
 const EVAL_TIMEOUT: Duration = Duration::from_secs(60);
-
-/// Times an evaluation is asked before its row is written without it.
-const EVAL_TRIES: u32 = 3;
-
-/// `eval_episodes` of a row whose evaluation was given up on, until it is written.
-const GAVE_UP: u64 = u64::MAX;
 
 /// One row of the learning curve: the training episodes since the previous row, and the
 /// deterministic evaluation episodes of the weights at `env_steps` (NaN when not run).
@@ -114,6 +111,10 @@ pub struct CurveRow {
     pub eval_return_human: f64,
     pub eval_return_task: f64,
     pub eval_version: u64,
+    /// The same seeds with sampled actions (NaN when not run).
+    pub eval_sampled_return_truth: f64,
+    pub eval_sampled_success_rate: f64,
+    pub eval_sampled_return_human: f64,
     pub episodes: u64,
     pub return_truth: f64,
     pub success_rate: f64,
@@ -128,14 +129,19 @@ pub struct CurveRow {
     pub policy_version: u64,
     pub dropped_messages: u64,
     pub stale_trajectories: u64,
+    /// Messages that came again (a trajectory sent again, taken once) or were asked again
+    /// (an evaluation), over the run.
+    pub retried_messages: u64,
+    /// Trajectories known to be missing now (a later one of the same actor arrived).
+    pub lost_messages: u64,
 }
 
-const CURVE_HEADER: &str = "env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate,eval_return_human,eval_return_task,eval_version,episodes,return_truth,success_rate,return_human,return_task,loss_critic_or_value,loss_actor,alpha_or_kl,env_steps_per_s,updates_per_s,updates,policy_version,dropped_messages,stale_trajectories";
+const CURVE_HEADER: &str = "env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate,eval_return_human,eval_return_task,eval_version,eval_sampled_return_truth,eval_sampled_success_rate,eval_sampled_return_human,episodes,return_truth,success_rate,return_human,return_task,loss_critic_or_value,loss_actor,alpha_or_kl,env_steps_per_s,updates_per_s,updates,policy_version,dropped_messages,stale_trajectories,retried_messages,lost_messages";
 
 impl CurveRow {
     fn csv(&self) -> String {
         format!(
-            "{},{:.1},{},{:.4},{:.4},{:.4},{:.4},{},{},{:.4},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.1},{:.2},{},{},{},{}",
+            "{},{:.1},{},{:.4},{:.4},{:.4},{:.4},{},{:.4},{:.4},{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.6},{:.6},{:.6},{:.1},{:.2},{},{},{},{},{},{}",
             self.env_steps,
             self.wall_s,
             self.eval_episodes,
@@ -144,6 +150,9 @@ impl CurveRow {
             self.eval_return_human,
             self.eval_return_task,
             self.eval_version,
+            self.eval_sampled_return_truth,
+            self.eval_sampled_success_rate,
+            self.eval_sampled_return_human,
             self.episodes,
             self.return_truth,
             self.success_rate,
@@ -157,7 +166,9 @@ impl CurveRow {
             self.updates,
             self.policy_version,
             self.dropped_messages,
-            self.stale_trajectories
+            self.stale_trajectories,
+            self.retried_messages,
+            self.lost_messages
         )
     }
 }
@@ -243,6 +254,7 @@ fn weights_of(
         // NOTE: one more than the share keeps actors busy while the next version comes;
         // the deterministic mode runs exactly the share.
         episodes_per_actor: (share + (!cfg.sync) as u64).min(u32::MAX as u64) as u32,
+        acks: Vec::new(),
     })
 }
 
@@ -265,8 +277,16 @@ struct Curve {
 
 impl Curve {
     fn write(&mut self, row: CurveRow, summary: &mut Summary) -> Result<()> {
+        let sampled = if row.eval_sampled_success_rate.is_nan() {
+            String::new()
+        } else {
+            format!(
+                " (sampled actions: {:.0}%)",
+                100.0 * row.eval_sampled_success_rate
+            )
+        };
         let line = format!(
-            "{} env steps: eval return {:.1}, success {:.0}% ({} episodes, v{}); training return {:.1}, success {:.0}%, {:.0} env steps/s",
+            "{} env steps: eval return {:.1}, success {:.0}%{sampled} ({} episodes, v{}); training return {:.1}, success {:.0}%, {:.0} env steps/s",
             row.env_steps,
             row.eval_return_truth,
             100.0 * row.eval_success_rate,
@@ -302,40 +322,58 @@ impl Curve {
             tracing::debug!(id = r.id, "an evaluation answered twice or after its row");
             return Ok(());
         };
-        if r.episodes.len() != p.request.seeds.len() {
+        let seeds = p.request.seeds.len();
+        let sampled = if p.request.sampled { seeds } else { 0 };
+        if r.episodes.len() != seeds || r.sampled.len() != sampled {
             summary.dropped_messages += 1;
             tracing::warn!(
                 id = r.id,
                 actor = r.actor,
                 found = r.episodes.len(),
-                expected = p.request.seeds.len(),
+                found_sampled = r.sampled.len(),
+                expected = seeds,
+                expected_sampled = sampled,
                 "dropped an evaluation with the wrong number of episodes"
             );
             return Ok(());
         }
-        let n = r.episodes.len().max(1) as f64;
-        let mean =
-            |f: &dyn Fn(&pbrl_common::Outcome) -> f64| r.episodes.iter().map(f).sum::<f64>() / n;
+        if p.row.eval_episodes > 0 {
+            tracing::debug!(id = r.id, "an evaluation answered twice");
+            return Ok(());
+        }
+        type Of = dyn Fn(&pbrl_common::Outcome) -> f64;
+        let mean = |xs: &[pbrl_common::Outcome], f: &Of| {
+            if xs.is_empty() {
+                f64::NAN
+            } else {
+                xs.iter().map(f).sum::<f64>() / xs.len() as f64
+            }
+        };
+        let (truth, success, human): (&Of, &Of, &Of) = (
+            &|o| o.return_truth as f64,
+            &|o| o.success as u8 as f64,
+            &|o| o.return_human as f64,
+        );
         p.row.eval_episodes = r.episodes.len() as u64;
-        p.row.eval_return_truth = mean(&|o| o.return_truth as f64);
-        p.row.eval_success_rate = mean(&|o| o.success as u8 as f64);
-        p.row.eval_return_human = mean(&|o| o.return_human as f64);
-        p.row.eval_return_task = mean(&|o| o.return_task as f64);
+        p.row.eval_return_truth = mean(&r.episodes, truth);
+        p.row.eval_success_rate = mean(&r.episodes, success);
+        p.row.eval_return_human = mean(&r.episodes, human);
+        p.row.eval_return_task = mean(&r.episodes, &|o| o.return_task as f64);
+        p.row.eval_sampled_return_truth = mean(&r.sampled, truth);
+        p.row.eval_sampled_success_rate = mean(&r.sampled, success);
+        p.row.eval_sampled_return_human = mean(&r.sampled, human);
         p.row.eval_version = r.version;
         self.write_ready(summary)
     }
 
-    /// Write the rows at the front that are done (evaluated, or given up on).
+    /// Write the rows at the front that are evaluated.
     fn write_ready(&mut self, summary: &mut Summary) -> Result<()> {
         while self
             .pending
             .front()
             .is_some_and(|p| p.row.eval_episodes > 0)
         {
-            let mut p = self.pending.pop_front().expect("the front exists");
-            if p.row.eval_episodes == GAVE_UP {
-                p.row.eval_episodes = 0;
-            }
+            let p = self.pending.pop_front().expect("the front exists");
             self.write(p.row, summary)?;
         }
         Ok(())
@@ -393,39 +431,32 @@ impl Actors {
     }
 }
 
-/// Ask again (another actor) for evaluations not answered in time; write a row without
-/// its evaluation after [`EVAL_TRIES`].
+/// Ask again (another actor, if there is one) for evaluations not answered in time;
+/// returns how many were asked again.
 async fn retry_evaluations(
     session: &Session,
     keys: &Keys,
     curve: &mut Curve,
     actors: &mut Actors,
-    summary: &mut Summary,
-) -> Result<()> {
+) -> Result<u64> {
+    let mut asked = 0;
     for p in curve.pending.iter_mut() {
         if p.row.eval_episodes > 0 || p.sent.elapsed() < EVAL_TIMEOUT {
-            continue;
-        }
-        if p.tries >= EVAL_TRIES {
-            tracing::warn!(
-                env_steps = p.row.env_steps,
-                tries = p.tries,
-                "no actor answered the evaluation; its row is written without it"
-            );
-            p.row.eval_episodes = GAVE_UP;
             continue;
         }
         p.request.actor = actors.next();
         p.tries += 1;
         p.sent = Instant::now();
+        asked += 1;
         tracing::warn!(
             env_steps = p.row.env_steps,
             actor = p.request.actor,
-            "an evaluation went unanswered; asking another actor"
+            tries = p.tries,
+            "an evaluation went unanswered; asking again"
         );
         send_eval(session, keys, &p.request).await?;
     }
-    curve.write_ready(summary)
+    Ok(asked)
 }
 
 async fn send_eval(session: &Session, keys: &Keys, request: &EvalRequest) -> Result<()> {
@@ -437,13 +468,6 @@ async fn send_eval(session: &Session, keys: &Keys, request: &EvalRequest) -> Res
         Priority::Data,
     )
     .await
-}
-
-fn pick_result(b: Body) -> Option<EvalResult> {
-    match b {
-        Body::EvalResult(r) => Some(r),
-        _ => None,
-    }
 }
 
 /// The learner loop's counters and bookkeeping: with the networks, optimisers, generators
@@ -461,6 +485,10 @@ struct Progress {
     next_row: u64,
     next_checkpoint: u64,
     window: Window,
+    /// Numbered trajectories received, per actor (each taken once).
+    receipts: Receipts,
+    /// Evaluations asked again.
+    eval_retries: u64,
     last_losses: [f64; 3],
     /// Wall time of the run in earlier processes.
     wall_s: f64,
@@ -495,6 +523,7 @@ pub const RESUMABLE_FIELDS: &[&str] = &[
     "keep_checkpoints",
     "log_every",
     "eval_episodes",
+    "eval_sampled",
     "out",
 ];
 
@@ -764,14 +793,18 @@ pub async fn run(
     let (resumed_at, updates_at) = (p.env_steps, p.updates);
 
     let server = WeightsServer::new(&session, &keys).await?;
-    let trajectories = TrajectorySubscriber::new(&session, &keys).await?;
-    let eval_results = MessageSubscriber::new(&session, &keys, keys.all_eval_results()).await?;
-    let stop = session
-        .declare_publisher(keys.stop())
-        .congestion_control(CongestionControl::Block)
-        .await
-        .map_err(|e| anyhow::anyhow!("declaring the stop publisher: {e}"))?;
-    tracing::info!(config = %serde_json::to_string(&cfg)?, "learner starts");
+    let mut trajectories = Inbox::trajectories(&session, &keys).await?;
+    let mut eval_results = Inbox::eval_results(&session, &keys).await?;
+    let stop = MessagePublisher::new(&session, &keys, keys.stop(), Priority::DataHigh).await?;
+    tracing::debug!(config = %serde_json::to_string(&cfg)?, "learner config");
+    tracing::info!(
+        run = %cfg.run,
+        algo = ?cfg.algo,
+        reward = ?cfg.reward,
+        steps = cfg.total_steps,
+        from = p.env_steps,
+        "learner starts"
+    );
     let bar = cfg.progress.then(|| {
         let bar = indicatif::ProgressBar::new(cfg.total_steps);
         bar.set_style(
@@ -799,7 +832,9 @@ pub async fn run(
         if let Some(f) = &folder {
             f.mark_version(p.version)?;
         }
-        weights_of(&cfg, backbone, p.version, p.env_steps)
+        let mut w = weights_of(&cfg, backbone, p.version, p.env_steps)?;
+        w.acks = p.receipts.acks();
+        Ok(w)
     };
     server.publish(&publish(&backbone, &p)?).await?;
     // Rows made before the checkpoint and not written: evaluated again.
@@ -818,23 +853,27 @@ pub async fn run(
     while p.env_steps < cfg.total_steps {
         let msg = tokio::select! {
             _ = &mut shutdown => { stopped = true; break }
-            r = eval_results.next(pick_result) => {
+            r = eval_results.next() => {
                 curve.complete(r?, &mut summary)?;
                 continue;
             }
             _ = tick.tick() => {
-                retry_evaluations(&session, &keys, &mut curve, &mut actors, &mut summary).await?;
+                p.eval_retries += retry_evaluations(&session, &keys, &mut curve, &mut actors).await?;
                 continue;
             }
             m = trajectories.next() => m?,
         };
+        actors.last_seen.insert(msg.actor, Instant::now());
+        // NOTE: a trajectory sent again (its actor waited long for weights) is taken once.
+        if !p.receipts.take(&msg) {
+            continue;
+        }
         let t = msg.trajectory;
         *summary.episodes_by_actor.entry(msg.actor).or_default() += 1;
         summary
             .first_version_by_actor
             .entry(msg.actor)
             .or_insert(t.policy_version);
-        actors.last_seen.insert(msg.actor, Instant::now());
         // NOTE: PPO trains only on the current version's data, and so does the
         // deterministic mode; older trajectories are dropped and counted.
         if (cfg.sync || matches!(backbone, Backbone::Ppo(..))) && t.policy_version != p.version {
@@ -925,6 +964,9 @@ pub async fn run(
                 eval_return_human: f64::NAN,
                 eval_return_task: f64::NAN,
                 eval_version: 0,
+                eval_sampled_return_truth: f64::NAN,
+                eval_sampled_success_rate: f64::NAN,
+                eval_sampled_return_human: f64::NAN,
                 episodes: p.window.episodes,
                 return_truth: p.window.truth / n,
                 success_rate: p.window.success / n,
@@ -941,6 +983,8 @@ pub async fn run(
                     + eval_results.dropped.get()
                     + summary.dropped_messages,
                 stale_trajectories: p.stale,
+                retried_messages: p.receipts.repeated + p.eval_retries,
+                lost_messages: p.receipts.missing(),
             };
             if cfg.eval_episodes == 0 {
                 curve.write(row, &mut summary)?;
@@ -953,6 +997,7 @@ pub async fn run(
                         None => weights_of(&cfg, &backbone, p.version, p.env_steps)?,
                     },
                     seeds: seeds.clone(),
+                    sampled: cfg.eval_sampled,
                 };
                 curve.ask(&session, &keys, row, request).await?;
             }
@@ -983,9 +1028,9 @@ pub async fn run(
     while !stopped && !curve.pending.is_empty() {
         tokio::select! {
             _ = &mut shutdown => break,
-            r = eval_results.next(pick_result) => curve.complete(r?, &mut summary)?,
+            r = eval_results.next() => curve.complete(r?, &mut summary)?,
             _ = tick.tick() => {
-                retry_evaluations(&session, &keys, &mut curve, &mut actors, &mut summary).await?;
+                p.eval_retries += retry_evaluations(&session, &keys, &mut curve, &mut actors).await?;
             }
             m = trajectories.next() => { m?; }
         }
@@ -1011,7 +1056,13 @@ pub async fn run(
     if let Some(bar) = &curve.bar {
         bar.finish();
     }
-    let _ = stop.put(wire::encode(&cfg.run, &Body::Stop)).await;
+    let word = Body::Stop(Stop {
+        env_steps: p.env_steps,
+        version: p.version,
+    });
+    if let Err(e) = stop.send(&word).await {
+        tracing::warn!(error = %e, "could not tell the actors to stop");
+    }
     summary.env_steps = p.env_steps;
     summary.updates = p.updates;
     summary.policy_version = p.version;
@@ -1069,6 +1120,7 @@ pub fn bench_checkpoint(
         actors: 1,
         episode_steps: 200,
         eval_episodes: 0,
+        eval_sampled: false,
         checkpoint_every: 0,
         checkpoint_secs: 0,
         keep_checkpoints: 2,

@@ -1,0 +1,66 @@
+//! Shared by the integration tests that watch zenoh itself.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Once;
+
+use tracing::field::{Field, Visit};
+use tracing_subscriber::layer::{Context, SubscriberExt};
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::Layer;
+
+static CLOSED: AtomicU64 = AtomicU64::new(0);
+
+/// Counts zenoh's "Unable to push non droppable network message ... Closing transport!".
+struct CloseCounter;
+
+struct Message(bool);
+
+impl Visit for Message {
+    fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" && format!("{value:?}").contains("Closing transport") {
+            self.0 = true;
+        }
+    }
+}
+
+impl<S: tracing::Subscriber> Layer<S> for CloseCounter {
+    fn on_event(&self, event: &tracing::Event<'_>, _: Context<'_, S>) {
+        let mut m = Message(false);
+        event.record(&mut m);
+        if m.0 {
+            CLOSED.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// Transports zenoh closed in this process because a push could not wait any longer (the
+/// counter is installed at the first call).
+pub fn closed_transports() -> u64 {
+    static INSTALL: Once = Once::new();
+    INSTALL.call_once(|| {
+        let filter =
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into());
+        tracing_subscriber::registry()
+            .with(CloseCounter.with_filter(tracing_subscriber::filter::LevelFilter::ERROR))
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .with_test_writer()
+                    .with_filter(filter),
+            )
+            .init();
+    });
+    CLOSED.load(Ordering::Relaxed)
+}
+
+/// A Zenoh config (`ConnectArgs` with `config`) whose blocked pushes give up after `ms`,
+/// with small TCP buffers (16 KiB), so that a reader that stops shows within a few hundred
+/// small messages rather than megabytes.
+pub fn short_wait_config(dir: &std::path::Path, ms: u64) -> std::path::PathBuf {
+    let path = dir.join("zenoh.json5");
+    let text = format!(
+        "{{ transport: {{ link: {{ tx: {{ queue: {{ congestion_control: {{ block: {{ wait_before_close: {} }} }} }} }}, tcp: {{ so_sndbuf: 16384, so_rcvbuf: 16384 }} }} }} }}",
+        ms * 1000
+    );
+    std::fs::write(&path, text).unwrap();
+    path
+}
