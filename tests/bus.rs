@@ -190,6 +190,7 @@ async fn bad_messages_on_every_key_are_dropped_counted_and_the_receivers_keep_go
             actor: 7,
             incarnation: 1,
             seq: 0,
+            oldest: 0,
             trajectory: t,
         }))
     };

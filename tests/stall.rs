@@ -35,6 +35,7 @@ fn message(run: &str, seq: u64) -> Vec<u8> {
             actor: 0,
             incarnation: 1,
             seq,
+            oldest: 0,
             trajectory: t,
         })),
     )

@@ -249,8 +249,11 @@ pub async fn run(
                 retry = RETRY_FIRST;
             }
         }
-        // Flow control: once this version's share of episodes is run, wait for the next.
-        while policy.episodes_allowed > 0 && on_version >= policy.episodes_allowed {
+        // Flow control (credit): with the learner's share of unacknowledged trajectories out,
+        // wait for the next version (its acknowledgements give new credit).
+        while policy.episodes_allowed > 0
+            && publisher.unacknowledged() >= policy.episodes_allowed as usize
+        {
             tokio::select! {
                 _ = &mut shutdown => return Ok(()),
                 s = stops.next() => {
@@ -270,17 +273,20 @@ pub async fn run(
                 }
                 _ = tokio::time::sleep(retry) => {
                     // NOTE: the next version is late. A weights message lost on the way is
-                    // asked for; trajectories lost on the way are sent again (the learner
-                    // takes each once). A learner that is only busy loses nothing by it.
+                    // asked for; if the learner answers with the version this actor has, it
+                    // may be waiting for trajectories lost on the way: they are sent again
+                    // (the learner takes each once). A learner that does not answer (paused,
+                    // gone) is sent nothing more than its credit allowed.
                     retry = (retry * 2).min(RETRY_MAX);
-                    let fetched = weights.fetch(&session, Duration::from_secs(2)).await?;
-                    if let Some(w) = fetched {
-                        if adopt(&mut policy, &w, &mut publisher, cfg.id)? {
-                            tracing::warn!(actor = cfg.id, version = policy.version, "weights arrived only when asked for");
-                            on_version = 0;
-                            retry = RETRY_FIRST;
-                            continue;
-                        }
+                    let Some(w) = weights.fetch(&session, Duration::from_secs(2)).await? else {
+                        tracing::debug!(actor = cfg.id, "the learner does not answer");
+                        continue;
+                    };
+                    if adopt(&mut policy, &w, &mut publisher, cfg.id)? {
+                        tracing::warn!(actor = cfg.id, version = policy.version, "weights arrived only when asked for");
+                        on_version = 0;
+                        retry = RETRY_FIRST;
+                        continue;
                     }
                     let n = publisher.resend().await?;
                     if n > 0 {

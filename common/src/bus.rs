@@ -460,16 +460,7 @@ impl TrajectoryPublisher {
 
     /// Publish a training trajectory.
     pub async fn publish(&mut self, trajectory: Trajectory) -> Result<()> {
-        let msg = TrajectoryMsg {
-            actor: self.actor,
-            incarnation: self.incarnation,
-            seq: self.next_seq,
-            trajectory,
-        };
-        let bytes = wire::encode(&self.run, &Body::Trajectory(Box::new(msg)));
-        self.unacked.push_back((self.next_seq, bytes.clone()));
-        self.next_seq += 1;
-        if self.unacked.len() > self.held_at_most {
+        if self.unacked.len() >= self.held_at_most {
             self.unacked.pop_front();
             if self.forgotten == 0 {
                 tracing::warn!(
@@ -480,6 +471,16 @@ impl TrajectoryPublisher {
             }
             self.forgotten += 1;
         }
+        let msg = TrajectoryMsg {
+            actor: self.actor,
+            incarnation: self.incarnation,
+            seq: self.next_seq,
+            oldest: self.unacked.front().map_or(self.next_seq, |(s, _)| *s),
+            trajectory,
+        };
+        let bytes = wire::encode(&self.run, &Body::Trajectory(Box::new(msg)));
+        self.unacked.push_back((self.next_seq, bytes.clone()));
+        self.next_seq += 1;
         self.publisher
             .put(bytes)
             .await
@@ -567,6 +568,15 @@ impl Receipts {
                 incarnation: msg.incarnation,
                 ..Receipt::default()
             };
+        }
+        if msg.oldest > r.next {
+            // NOTE: the actor holds nothing below `oldest` any more (acknowledged to this
+            // learner before it restarted from a checkpoint, or given up): none will come.
+            r.ahead = r.ahead.split_off(&msg.oldest);
+            r.next = msg.oldest;
+            while r.ahead.remove(&r.next) {
+                r.next += 1;
+            }
         }
         if msg.seq < r.next || !r.ahead.insert(msg.seq) {
             self.repeated += 1;
@@ -693,6 +703,7 @@ mod tests {
             actor,
             incarnation,
             seq,
+            oldest: 0,
             trajectory: Trajectory {
                 format: TRAJECTORY_FORMAT,
                 seed: seq,
@@ -731,5 +742,20 @@ mod tests {
         assert!(r.take(&msg(0, 8, 0)));
         assert_eq!(ack(&r, 0).incarnation, 8);
         assert_eq!(ack(&r, 0).next_seq, 1);
+        // A learner restarted from a checkpoint knows less than the actor: the actor holds
+        // only 6 and up (1-5 were acknowledged since), so nothing below 6 is missing.
+        let restored = r.clone();
+        let mut r = restored;
+        assert!(r.take(&TrajectoryMsg {
+            oldest: 6,
+            ..msg(0, 8, 7)
+        }));
+        assert_eq!(r.missing(), 1, "6 is still to come");
+        assert!(r.take(&TrajectoryMsg {
+            oldest: 6,
+            ..msg(0, 8, 6)
+        }));
+        assert_eq!(r.missing(), 0);
+        assert_eq!(ack(&r, 0).next_seq, 8);
     }
 }

@@ -27,7 +27,7 @@ impl Mode {
 }
 
 /// How a process joins the Zenoh network.
-#[derive(clap::Args, Clone, Debug, Default, PartialEq, Eq)]
+#[derive(clap::Args, Clone, Debug, PartialEq, Eq)]
 pub struct ConnectArgs {
     /// Endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable).
     #[arg(long = "connect", value_name = "ENDPOINT")]
@@ -48,6 +48,28 @@ pub struct ConnectArgs {
     /// start before the router or learner it joins); 0: one try.
     #[arg(long, default_value_t = 60)]
     pub connect_timeout: u64,
+    /// Seconds without a word from a peer before its link is declared dead (zenoh's lease,
+    /// 10 s by default; pbrl's 60 s lets a peer pause, say for a long update or a SIGSTOP,
+    /// without losing its session; a peer that exits closes its links at once anyway).
+    #[arg(long, default_value_t = DEFAULT_LEASE_SECS)]
+    pub lease: u64,
+}
+
+/// pbrl's default link lease, seconds.
+pub const DEFAULT_LEASE_SECS: u64 = 60;
+
+impl Default for ConnectArgs {
+    fn default() -> Self {
+        Self {
+            connect: Vec::new(),
+            listen: Vec::new(),
+            config: None,
+            mode: None,
+            multicast: false,
+            connect_timeout: 60,
+            lease: DEFAULT_LEASE_SECS,
+        }
+    }
 }
 
 fn json_list(items: &[String]) -> String {
@@ -110,6 +132,13 @@ impl ConnectArgs {
         if self.config.is_none() || !self.connect.is_empty() {
             set(&mut cfg, "connect/endpoints", json_list(&self.connect))?;
         }
+        if self.lease > 0 {
+            set(
+                &mut cfg,
+                "transport/link/tx/lease",
+                (self.lease * 1000).to_string(),
+            )?;
+        }
         if !self.connect.is_empty() && self.connect_timeout > 0 {
             set(
                 &mut cfg,
@@ -148,6 +177,7 @@ mod tests {
         assert_eq!(cfg.get_json("scouting/multicast/enabled").unwrap(), "false");
         assert_eq!(cfg.get_json("listen/endpoints").unwrap(), "[]");
         assert_eq!(cfg.get_json("mode").unwrap(), "\"client\"");
+        assert_eq!(cfg.get_json("transport/link/tx/lease").unwrap(), "60000");
         let args = ConnectArgs {
             multicast: true,
             ..ConnectArgs::router_on("tcp/127.0.0.1:7447")

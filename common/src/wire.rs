@@ -40,8 +40,9 @@ pub struct Weights {
     pub obs_clip: f32,
     /// Act uniformly at random instead (SAC's first steps).
     pub random_actions: bool,
-    /// Episodes each actor may run with this version before it waits for the next (0: no
-    /// limit). The learner's flow control: actors never run far ahead of training.
+    /// The learner's flow control (credit): each actor may have at most this many
+    /// trajectories unacknowledged (0: no limit); acknowledgements come with each version.
+    /// Actors never run far ahead of training, and what waits for the learner is bounded.
     pub episodes_per_actor: u32,
     /// Trajectories the learner holds, per actor: an actor forgets the ones acknowledged
     /// and sends the others again if it waits too long for the next version.
@@ -65,6 +66,9 @@ pub struct TrajectoryMsg {
     /// This actor's training trajectories, numbered from 0 (a trajectory sent again keeps
     /// its number, so the learner takes it once).
     pub seq: u64,
+    /// The oldest number the actor still holds for the learner: it will not send any
+    /// below again (acknowledged, perhaps to a learner since restarted from a checkpoint).
+    pub oldest: u64,
     pub trajectory: Trajectory,
 }
 

@@ -251,8 +251,9 @@ fn weights_of(
         obs_var: norm.var.iter().map(|x| *x as f32).collect(),
         obs_clip: norm.clip as f32,
         random_actions: random,
-        // NOTE: one more than the share keeps actors busy while the next version comes;
-        // the deterministic mode runs exactly the share.
+        // NOTE: the credit each actor gets: its share of the steps until the next version,
+        // and one more to keep it busy while that version comes (the deterministic mode runs
+        // exactly the share). What waits for the learner is at most this per actor.
         episodes_per_actor: (share + (!cfg.sync) as u64).min(u32::MAX as u64) as u32,
         acks: Vec::new(),
     })
