@@ -1,6 +1,6 @@
 //! `pbrl exp plot`: the paper's figures (ground-truth return, success rate, preference
 //! return against env steps; mean and standard deviation over seeds, one line per method)
-//! and a summary table, for any experiment folder.
+//! and a summary table with 95% confidence intervals, for any experiment folder.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -21,8 +21,16 @@ pub struct PlotArgs {
     pub out: Option<PathBuf>,
     /// Plot the training episodes (sampled actions, every episode since the previous row)
     /// instead of the deterministic evaluations.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "sampled")]
     pub training: bool,
+    /// Plot the evaluations with sampled actions (the same seeds as the deterministic ones)
+    /// instead of those with the mean action.
+    #[arg(long)]
+    pub sampled: bool,
+    /// The summary averages each run over the rows of this many env steps up to each
+    /// `--at` (0: the row at `--at` alone).
+    #[arg(long, default_value_t = 100_000)]
+    pub window: u64,
 }
 
 /// The figures: curve column (after `eval_` for the evaluations), title, y label.
@@ -32,8 +40,15 @@ const FIGURES: [(&str, &str, &str); 3] = [
     ("return_human", "Preference return", "return (sum of r_H)"),
 ];
 
-/// One run's evaluations: bucket (env steps / log_every) -> values by figure.
-type Run = BTreeMap<u64, [f64; 3]>;
+/// One row's figures and the episodes behind them.
+#[derive(Clone, Copy, Debug)]
+struct Row {
+    v: [f64; 3],
+    episodes: f64,
+}
+
+/// One run's evaluations: bucket (env steps / log_every) -> its row.
+type Run = BTreeMap<u64, Row>;
 
 /// A run as read from its folder.
 struct RunData {
@@ -46,7 +61,7 @@ struct RunData {
     wall_s: f64,
 }
 
-fn read_run(dir: &Path, prefix: &str) -> Result<Option<RunData>> {
+fn read_run(dir: &Path, prefix: &str, episodes_col: &str) -> Result<Option<RunData>> {
     let config = dir.join("config.json");
     let curve = dir.join("curve.csv");
     if !config.exists() || !curve.exists() {
@@ -76,6 +91,7 @@ fn read_run(dir: &Path, prefix: &str) -> Result<Option<RunData>> {
     let wall = col("wall_s").ok();
     let name = |i: usize| format!("{prefix}{}", FIGURES[i].0);
     let cols = [col(&name(0))?, col(&name(1))?, col(&name(2))?];
+    let episodes = col(episodes_col)?;
     let mut run = Run::new();
     let (mut last_steps, mut wall_s) = (0, 0.0);
     for (k, line) in lines.enumerate() {
@@ -93,7 +109,8 @@ fn read_run(dir: &Path, prefix: &str) -> Result<Option<RunData>> {
         (last_steps, wall_s) = (s, wall.map_or(Ok(f64::NAN), num)?);
         let v = [num(cols[0])?, num(cols[1])?, num(cols[2])?];
         if v.iter().all(|x| x.is_finite()) {
-            run.insert(s / every, v);
+            let episodes = num(episodes)?;
+            run.insert(s / every, Row { v, episodes });
         }
     }
     Ok(Some(RunData {
@@ -116,6 +133,46 @@ fn stats(xs: &[f64]) -> (f64, f64, usize) {
     (mean, var.sqrt(), n)
 }
 
+/// The 97.5% quantile of Student's t with `df` degrees of freedom (a 95% interval).
+fn t975(df: usize) -> f64 {
+    const T: [f64; 10] = [
+        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    ];
+    match df {
+        0 => f64::NAN,
+        1..=10 => T[df - 1],
+        11..=30 => 2.1,
+        _ => 1.96,
+    }
+}
+
+/// Mean and 95% confidence interval of the mean (Student's t over `xs`).
+fn mean_ci(xs: &[f64]) -> (f64, f64, f64) {
+    let (mean, std, n) = stats(xs);
+    let half = t975(n.saturating_sub(1)) * std / (n.max(1) as f64).sqrt();
+    (mean, mean - half, mean + half)
+}
+
+/// `mean [lo, hi]` with `digits` decimals (the mean alone when there is no interval).
+fn interval((mean, lo, hi): (f64, f64, f64), digits: usize) -> String {
+    if lo.is_finite() && hi.is_finite() {
+        format!("{mean:.digits$} [{lo:.digits$}, {hi:.digits$}]")
+    } else {
+        format!("{mean:.digits$} (one seed)")
+    }
+}
+
+/// Wilson's 95% interval of a rate: `k` successes in `n` trials.
+fn wilson(k: f64, n: f64) -> (f64, f64) {
+    if n <= 0.0 {
+        return (f64::NAN, f64::NAN);
+    }
+    let (z, p) = (1.96f64, k / n);
+    let centre = (p + z * z / (2.0 * n)) / (1.0 + z * z / n);
+    let half = z * (p * (1.0 - p) / n + z * z / (4.0 * n * n)).sqrt() / (1.0 + z * z / n);
+    (centre - half, centre + half)
+}
+
 /// A method's curve: (env steps, [(mean, std, n); 3]) per bucket.
 type Curve = Vec<(u64, [(f64, f64, usize); 3])>;
 
@@ -127,11 +184,18 @@ fn method_of(run: &str) -> Option<&str> {
 
 pub fn plot(args: PlotArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.dir.clone());
-    // Column prefix, file prefix, and what the figures show.
-    let (prefix, file, what) = if args.training {
-        ("", "training_", "training episodes")
+    // Column prefix, file prefix, what the figures show, the column counting episodes.
+    let (prefix, file, what, episodes) = if args.training {
+        ("", "training_", "training episodes", "episodes")
+    } else if args.sampled {
+        (
+            "eval_sampled_",
+            "sampled_",
+            "evaluation, sampled actions",
+            "eval_episodes",
+        )
     } else {
-        ("eval_", "", "evaluation")
+        ("eval_", "", "evaluation", "eval_episodes")
     };
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     // Runs grouped by method.
@@ -143,7 +207,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         let Some(method) = method_of(&name) else {
             continue;
         };
-        match read_run(&e.path(), prefix) {
+        match read_run(&e.path(), prefix, episodes) {
             Ok(Some(run)) => methods.entry(method.to_string()).or_default().push(run),
             Ok(None) => {}
             Err(e) => eprintln!("skipped {name}: {e:#}"),
@@ -169,7 +233,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
                 let fig = |i: usize| {
                     let xs: Vec<f64> = runs
                         .iter()
-                        .filter_map(|r| r.rows.get(&b).map(|v| v[i]))
+                        .filter_map(|r| r.rows.get(&b).map(|row| row.v[i]))
                         .collect();
                     stats(&xs)
                 };
@@ -191,23 +255,57 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         draw(&path, &format!("{title} ({what})"), ylabel, i, &curves)?;
         println!("wrote {}", path.display());
     }
-    // The summary table.
-    let mut md = format!("Figures of the {what}: mean ± standard deviation over seeds.\n\n| method | env steps | seeds | ground-truth return | success rate | preference return |\n|---|---|---|---|---|---|\n");
-    let mut csv = String::from("method,env_steps,seeds,return_truth_mean,return_truth_std,success_rate_mean,success_rate_std,return_human_mean,return_human_std\n");
+    // The summary table: each run's mean over the window up to each mark, then the mean
+    // over seeds with its 95% interval; for the success rate also the rate pooled over
+    // every episode of every seed in the window, with Wilson's interval (what the
+    // evaluation's own noise allows).
+    let window = |every: u64| args.window.max(every);
+    let mut md = format!(
+        "Figures of the {what}: each seed's mean over the rows of the last {} env steps up to the mark, then the mean over seeds [95% interval, Student's t]; \"pooled\" is the success rate over every episode of every seed in that window [Wilson's 95% interval].\n\n| method | env steps | seeds | ground-truth return | success rate | success, pooled (episodes) | preference return |\n|---|---|---|---|---|---|---|\n",
+        args.window
+    );
+    let mut csv = String::from("method,env_steps,seeds,window,return_truth_mean,return_truth_lo,return_truth_hi,success_rate_mean,success_rate_lo,success_rate_hi,pooled_success,pooled_lo,pooled_hi,pooled_episodes,return_human_mean,return_human_lo,return_human_hi\n");
     for (method, curve) in &curves {
-        let every = methods[method][0].every;
+        let runs = &methods[method];
+        let every = runs[0].every;
         for &at in &args.at {
-            let Some((steps, f)) = curve.iter().find(|(s, _)| *s == at / every * every) else {
+            let mark = at / every * every;
+            if !curve.iter().any(|(s, _)| *s == mark) {
                 continue;
-            };
-            let n = f[0].2;
+            }
+            let from = mark.saturating_sub(window(every)) / every + 1;
+            let (mut per_seed, mut k, mut n): ([Vec<f64>; 3], f64, f64) = Default::default();
+            for r in runs {
+                let rows: Vec<&Row> = r
+                    .rows
+                    .range(from..=mark / every)
+                    .map(|(_, row)| row)
+                    .collect();
+                if rows.is_empty() {
+                    continue;
+                }
+                for (i, xs) in per_seed.iter_mut().enumerate() {
+                    xs.push(rows.iter().map(|row| row.v[i]).sum::<f64>() / rows.len() as f64);
+                }
+                k += rows.iter().map(|row| row.v[1] * row.episodes).sum::<f64>();
+                n += rows.iter().map(|row| row.episodes).sum::<f64>();
+            }
+            let seeds = per_seed[0].len();
+            let [truth, success, human] = [0, 1, 2].map(|i| mean_ci(&per_seed[i]));
+            let (lo, hi) = wilson(k.round(), n);
+            let pooled = k / n.max(1.0);
+            // NOTE: a rate's interval stops at 0 and 1 (NaN, for one seed, stays NaN).
+            let clip = |x: f64| if x.is_nan() { x } else { x.clamp(0.0, 1.0) };
+            let rate = (success.0, clip(success.1), clip(success.2));
             md.push_str(&format!(
-                "| {method} | {steps} | {n} | {:.1} ± {:.1} | {:.2} ± {:.2} | {:.1} ± {:.1} |\n",
-                f[0].0, f[0].1, f[1].0, f[1].1, f[2].0, f[2].1
+                "| {method} | {mark} | {seeds} | {} | {} | {pooled:.2} [{lo:.2}, {hi:.2}] ({n:.0}) | {} |\n",
+                interval(truth, 1),
+                interval(rate, 2),
+                interval(human, 1)
             ));
             csv.push_str(&format!(
-                "{method},{steps},{n},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}\n",
-                f[0].0, f[0].1, f[1].0, f[1].1, f[2].0, f[2].1
+                "{method},{mark},{seeds},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{pooled:.4},{lo:.4},{hi:.4},{n:.0},{:.4},{:.4},{:.4}\n",
+                window(every), truth.0, truth.1, truth.2, success.0, success.1, success.2, human.0, human.1, human.2
             ));
         }
     }
@@ -357,4 +455,32 @@ fn draw(
         .map_err(draw_err)?;
     root.present().map_err(draw_err)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn intervals_match_their_textbook_values() {
+        // Wilson, 5 of 10 at 95%: 0.2366 to 0.7634 (statsmodels' proportion_confint,
+        // method="wilson").
+        let (lo, hi) = wilson(5.0, 10.0);
+        assert!(
+            (lo - 0.2366).abs() < 1e-4 && (hi - 0.7634).abs() < 1e-4,
+            "{lo} {hi}"
+        );
+        // 0 of 30 is not an interval of width 0.
+        let (lo, hi) = wilson(0.0, 30.0);
+        assert!(lo.abs() < 1e-12 && (hi - 0.1135).abs() < 1e-4, "{lo} {hi}");
+        // Student's t over 3 seeds: 2 +- 4.303 * 1 / sqrt(3).
+        let (m, lo, hi) = mean_ci(&[1.0, 2.0, 3.0]);
+        assert_eq!(m, 2.0);
+        assert!(
+            (hi - 2.0 - 4.303 / 3f64.sqrt()).abs() < 1e-9 && (2.0 - lo - (hi - 2.0)).abs() < 1e-12
+        );
+        // One seed: no interval.
+        assert!(mean_ci(&[1.0]).1.is_nan());
+        assert_eq!(interval((1.0, f64::NAN, f64::NAN), 1), "1.0 (one seed)");
+    }
 }

@@ -1,5 +1,9 @@
 //! Weights and trajectories over Zenoh, through an in-process router on loopback.
 
+mod support;
+
+use support::bad_payloads;
+
 use std::time::Duration;
 
 use pbrl_common::bus::{wait_until, Inbox, TrajectoryPublisher, WeightsClient, WeightsServer};
@@ -107,41 +111,6 @@ async fn learner_and_actors_exchange_weights_and_trajectories_through_a_router()
     seen.sort();
     assert_eq!(seen, vec![0, 1, 2, 3, 4, 100, 101, 102, 103, 104]);
     assert_eq!(trajectories.dropped.get(), 0);
-}
-
-/// A wire envelope by hand (format, run, body), as a foreign client could send it.
-fn envelope(format: u16, run: &str, body: &Body) -> Vec<u8> {
-    bincode::serde::encode_to_vec((format, run, body), bincode::config::standard()).unwrap()
-}
-
-/// Every way a message for `good`'s key can be bad: (what, payload).
-fn bad_payloads(
-    run: &str,
-    good: &Body,
-    wrong_dims: Option<Body>,
-    nan: Option<Body>,
-    other: Body,
-) -> Vec<(&'static str, Vec<u8>)> {
-    let mut bad = vec![
-        ("garbage", vec![1u8, 2, 3, 250, 251, 252]),
-        ("empty", Vec::new()),
-        ("another format", envelope(wire::WIRE_FORMAT + 1, run, good)),
-        ("another run", wire::encode("another-run", good)),
-        ("64 MB", vec![7u8; 64 << 20]),
-        ("another kind of message", wire::encode(run, &other)),
-    ];
-    if let Some(b) = wrong_dims {
-        bad.push(("wrong dimensions", wire::encode(run, &b)));
-    }
-    if let Some(b) = nan {
-        bad.push(("NaN", wire::encode(run, &b)));
-    }
-    // The hand-made envelope is the real one: with this build's format it decodes.
-    assert_eq!(
-        wire::decode(run, &envelope(wire::WIRE_FORMAT, run, good)).unwrap(),
-        *good
-    );
-    bad
 }
 
 /// Put every payload on `key` from a foreign session, then `good`.

@@ -186,6 +186,8 @@ pub struct Summary {
     pub episodes_by_actor: std::collections::BTreeMap<u32, u64>,
     /// The policy version of each actor's first episode.
     pub first_version_by_actor: std::collections::BTreeMap<u32, u64>,
+    /// The policy version of each actor's last episode taken.
+    pub last_version_by_actor: std::collections::BTreeMap<u32, u64>,
     /// The run was stopped (a signal) before its total.
     pub stopped: bool,
 }
@@ -875,6 +877,9 @@ pub async fn run(
             .first_version_by_actor
             .entry(msg.actor)
             .or_insert(t.policy_version);
+        summary
+            .last_version_by_actor
+            .insert(msg.actor, t.policy_version);
         // NOTE: PPO trains only on the current version's data, and so does the
         // deterministic mode; older trajectories are dropped and counted.
         if (cfg.sync || matches!(backbone, Backbone::Ppo(..))) && t.policy_version != p.version {

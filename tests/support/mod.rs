@@ -1,4 +1,8 @@
-//! Shared by the integration tests that watch zenoh itself.
+//! Shared by the integration tests: zenoh's closed transports counted, a config that
+//! closes them sooner, and every kind of bad message.
+#![allow(dead_code)] // NOTE: each test file uses its own part.
+
+use pbrl_common::wire::{self, Body};
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Once;
@@ -63,4 +67,39 @@ pub fn short_wait_config(dir: &std::path::Path, ms: u64) -> std::path::PathBuf {
     );
     std::fs::write(&path, text).unwrap();
     path
+}
+
+/// A wire envelope by hand (format, run, body), as a foreign client could send it.
+pub fn envelope(format: u16, run: &str, body: &Body) -> Vec<u8> {
+    bincode::serde::encode_to_vec((format, run, body), bincode::config::standard()).unwrap()
+}
+
+/// Every way a message for `good`'s key can be bad: (what, payload).
+pub fn bad_payloads(
+    run: &str,
+    good: &Body,
+    wrong_dims: Option<Body>,
+    nan: Option<Body>,
+    other: Body,
+) -> Vec<(&'static str, Vec<u8>)> {
+    let mut bad = vec![
+        ("garbage", vec![1u8, 2, 3, 250, 251, 252]),
+        ("empty", Vec::new()),
+        ("another format", envelope(wire::WIRE_FORMAT + 1, run, good)),
+        ("another run", wire::encode("another-run", good)),
+        ("64 MB", vec![7u8; 64 << 20]),
+        ("another kind of message", wire::encode(run, &other)),
+    ];
+    if let Some(b) = wrong_dims {
+        bad.push(("wrong dimensions", wire::encode(run, &b)));
+    }
+    if let Some(b) = nan {
+        bad.push(("NaN", wire::encode(run, &b)));
+    }
+    // The hand-made envelope is the real one: with this build's format it decodes.
+    assert_eq!(
+        wire::decode(run, &envelope(wire::WIRE_FORMAT, run, good)).unwrap(),
+        *good
+    );
+    bad
 }
