@@ -18,6 +18,7 @@ mkdir -p "$dir"
 echo "bus load check: 2 x (pbrl train --algo sac, 2 actors) for $minutes min with $bin; runs in $dir"
 pids=()
 for seed in 1 2; do
+    rm -rf "$dir/sac-s$seed" # NOTE: --fresh keeps the old train.log; start clean.
     # NOTE: RUST_LOG keeps zenoh's warnings and errors (a closed transport is one) in the
     # run's train.log whatever the binary's default filter.
     RUST_LOG=${RUST_LOG:-info,zenoh=warn,zenoh_transport=warn} \

@@ -1058,7 +1058,11 @@ pub async fn run(
             folder_finished(f, &p)?;
         }
     }
-    curve.flush(&mut summary)?;
+    // NOTE: a stopped run's rows that still wait for their evaluation stay in its checkpoint
+    // (the resumed run writes them, evaluated), not in the curve.
+    if !(stopped && folder.is_some()) {
+        curve.flush(&mut summary)?;
+    }
     if let Some(bar) = &curve.bar {
         bar.finish();
     }
