@@ -161,7 +161,7 @@ impl LearnArgs {
 pub struct TrainArgs {
     #[command(flatten)]
     pub learn: LearnArgs,
-    /// Actors: `train` starts this many tasks, each with its own Zenoh session; for
+    /// Actors: `train` starts this many tasks (on the process's one Zenoh session); for
     /// `learner` it is how many will join (the learner's flow control counts on it).
     #[arg(long, default_value_t = 2)]
     pub actors: u32,
