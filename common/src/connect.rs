@@ -66,7 +66,8 @@ impl Default for ConnectArgs {
             config: None,
             mode: None,
             multicast: false,
-            connect_timeout: 60,
+            // NOTE: in code (tests, the in-process router) one try; the flag's default is 60.
+            connect_timeout: 0,
             lease: DEFAULT_LEASE_SECS,
         }
     }
