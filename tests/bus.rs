@@ -2,15 +2,14 @@
 
 mod support;
 
-use support::bad_payloads;
+use support::{bad_payloads, put_all, trajectory};
 
 use std::time::Duration;
 
 use pbrl_common::bus::{wait_until, Inbox, TrajectoryPublisher, WeightsClient, WeightsServer};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
-use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{self, Body, Tensor, Weights};
-use pbrl_common::{Keys, StepRewards, Trajectory};
+use pbrl_common::{Keys, Trajectory};
 
 const LIMIT: Duration = Duration::from_secs(20);
 
@@ -32,21 +31,6 @@ fn weights(version: u64) -> Weights {
         random_actions: false,
         episodes_per_actor: 0,
         acks: Vec::new(),
-    }
-}
-
-fn trajectory(seed: u64) -> Trajectory {
-    Trajectory {
-        format: TRAJECTORY_FORMAT,
-        seed,
-        policy_version: 3,
-        obs_dim: 2,
-        act_dim: 1,
-        obs: vec![0.5; 2 * 201],
-        actions: vec![0.1; 200],
-        rewards: vec![StepRewards::default(); 200],
-        outcome: Default::default(),
-        replay: None,
     }
 }
 
@@ -115,20 +99,9 @@ async fn learner_and_actors_exchange_weights_and_trajectories_through_a_router()
 
 /// Put every payload on `key` from a foreign session, then `good`.
 async fn spray(foreign: &zenoh::Session, key: &str, bad: &[(&str, Vec<u8>)], good: Vec<u8>) {
-    let raw = foreign
-        .declare_publisher(key.to_string())
-        .congestion_control(zenoh::qos::CongestionControl::Block)
-        .await
-        .unwrap();
-    wait_until(LIMIT, || async {
-        Ok(raw.matching_status().await.unwrap().matching())
-    })
-    .await
-    .unwrap();
-    for (_, bytes) in bad {
-        raw.put(bytes.clone()).await.unwrap();
-    }
-    raw.put(good).await.unwrap();
+    let mut payloads: Vec<Vec<u8>> = bad.iter().map(|(_, bytes)| bytes.clone()).collect();
+    payloads.push(good);
+    put_all(foreign, key, &payloads).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -8,15 +8,15 @@ use std::time::Duration;
 
 use pbrl_actor::runner::{self, ActorConfig, Task};
 use pbrl_actor::WorldConfig;
-use pbrl_common::bus::{wait_until, WeightsClient};
+use pbrl_common::bus::WeightsClient;
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{Body, EvalRequest, EvalResult, Stop, Tensor, TrajectoryMsg, Weights};
 use pbrl_common::{Keys, Outcome, StepRewards, Trajectory};
 use pbrl_learner::ppo::PpoConfig;
 use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
-use support::bad_payloads;
+use pbrl_learner::service::{self, Algo, LearnerConfig};
+use support::{bad_payloads, put_all};
 
 fn trajectory(nan: bool, short: bool) -> Body {
     let mut t = Trajectory {
@@ -73,14 +73,7 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
     let session = ConnectArgs::router_on(&endpoint).open().await.unwrap();
     let run = "foreign-test";
     let keys = Keys::new(run).unwrap();
-    let (obs_dim, act_dim) = Task::Point.dims();
     let cfg = LearnerConfig {
-        run: run.into(),
-        algo: Algo::Sac,
-        reward: RewardSource::True,
-        total_steps: 100_000,
-        obs_dim,
-        act_dim,
         sac: SacConfig {
             hidden: vec![16, 16],
             batch: 16,
@@ -91,16 +84,9 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
         ppo: PpoConfig::default(),
         publish_every: 10,
         log_every: 10_000,
-        actors: 2,
-        episode_steps: runner::POINT_HORIZON,
         eval_episodes: 4,
         eval_sampled: true,
-        checkpoint_every: 0,
-        checkpoint_secs: 0,
-        keep_checkpoints: 2,
-        sync: false,
-        out: None,
-        progress: false,
+        ..support::point_learner(run, Algo::Sac, 100_000)
     };
     let learner = tokio::spawn(service::run(cfg, session.clone(), std::future::pending()));
     let mut actors = Vec::new();
@@ -210,19 +196,8 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
     ];
     let mut to_learner = 0;
     for (key, bad, learner_gets) in &sprays {
-        let raw = foreign
-            .declare_publisher(key.clone())
-            .congestion_control(zenoh::qos::CongestionControl::Block)
-            .await
-            .unwrap();
-        wait_until(Duration::from_secs(20), || async {
-            Ok(raw.matching_status().await.unwrap().matching())
-        })
-        .await
-        .unwrap();
-        for (_, bytes) in bad {
-            raw.put(bytes.clone()).await.unwrap();
-        }
+        let payloads: Vec<Vec<u8>> = bad.iter().map(|(_, bytes)| bytes.clone()).collect();
+        put_all(&foreign, key, &payloads).await;
         if *learner_gets {
             to_learner += bad.len() as u64;
         }

@@ -22,7 +22,7 @@ use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::Keys;
 use pbrl_learner::ppo::PpoConfig;
 use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_learner::service::{self, Algo, LearnerConfig};
 
 /// Run `fut`, not polling it while `paused` holds true.
 async fn pausable<F: std::future::Future>(
@@ -63,17 +63,10 @@ async fn a_paused_learner_loses_nothing_and_no_transport_closes() {
     };
     let run = "pause-test";
     let keys = Keys::new(run).unwrap();
-    let (obs_dim, act_dim) = Task::Point.dims();
     // The actors' share of a version is large during SAC's random steps (the rest of them):
     // paused there, the learner is sent hundreds of trajectories, more than zenoh's default
     // FIFO of 256 would hold.
     let cfg = LearnerConfig {
-        run: run.into(),
-        algo: Algo::Sac,
-        reward: RewardSource::True,
-        total_steps: 40_000,
-        obs_dim,
-        act_dim,
         sac: SacConfig {
             hidden: vec![16, 16],
             batch: 16,
@@ -82,18 +75,10 @@ async fn a_paused_learner_loses_nothing_and_no_transport_closes() {
             ..SacConfig::default()
         },
         ppo: PpoConfig::default(),
-        publish_every: 20,
         log_every: 10_000,
-        actors: 2,
-        episode_steps: runner::POINT_HORIZON,
         eval_episodes: 4,
         eval_sampled: true,
-        checkpoint_every: 0,
-        checkpoint_secs: 0,
-        keep_checkpoints: 2,
-        sync: false,
-        out: None,
-        progress: false,
+        ..support::point_learner(run, Algo::Sac, 40_000)
     };
 
     // An observer on the learner's session counts every trajectory the actors publish.

@@ -1,5 +1,7 @@
 //! A learner and actors as services over an in-process Zenoh router on loopback.
 
+mod support;
+
 use std::time::Duration;
 
 use pbrl_actor::runner::{self, ActorConfig, Task};
@@ -7,47 +9,8 @@ use pbrl_actor::WorldConfig;
 use pbrl_common::bus::WeightsClient;
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::Keys;
-use pbrl_learner::ppo::PpoConfig;
-use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_learner::service::{self, Algo, LearnerConfig};
 use tokio::sync::oneshot;
-
-fn learner_config(run: &str, algo: Algo, total: u64) -> LearnerConfig {
-    let (obs_dim, act_dim) = Task::Point.dims();
-    LearnerConfig {
-        run: run.into(),
-        algo,
-        reward: RewardSource::True,
-        total_steps: total,
-        obs_dim,
-        act_dim,
-        sac: SacConfig {
-            hidden: vec![32, 32],
-            batch: 32,
-            random_steps: 300,
-            update_every: 2,
-            ..SacConfig::default()
-        },
-        ppo: PpoConfig {
-            hidden: vec![32, 32],
-            rollout_steps: 300,
-            minibatch: 64,
-            ..PpoConfig::default()
-        },
-        publish_every: 20,
-        log_every: 1000,
-        actors: 2,
-        episode_steps: pbrl_actor::runner::POINT_HORIZON,
-        eval_episodes: 0,
-        eval_sampled: false,
-        checkpoint_every: 0,
-        checkpoint_secs: 0,
-        keep_checkpoints: 2,
-        sync: false,
-        out: None,
-        progress: false,
-    }
-}
 
 fn actor(
     endpoint: &str,
@@ -106,7 +69,7 @@ async fn joined<T>(task: tokio::task::JoinHandle<anyhow::Result<T>>, secs: u64) 
 async fn learner_and_actors_train_a_late_actor_joins_a_killed_actor_does_not_stop_it() {
     let (endpoint, _router) = router().await;
     let run = "service-test";
-    let learner = learner(&endpoint, learner_config(run, Algo::Sac, 6_000)).await;
+    let learner = learner(&endpoint, support::point_learner(run, Algo::Sac, 6_000)).await;
 
     let (_stop_a, actor_a) = actor(&endpoint, run, 0);
     let (stop_b, actor_b) = actor(&endpoint, run, 1);
@@ -162,7 +125,7 @@ async fn ppo_trains_only_on_the_current_version() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = LearnerConfig {
         out: Some(dir.path().to_path_buf()),
-        ..learner_config(run, Algo::Ppo, 3_000)
+        ..support::point_learner(run, Algo::Ppo, 3_000)
     };
     let learner = learner(&endpoint, cfg).await;
     let (_a, actor_a) = actor(&endpoint, run, 0);
@@ -211,7 +174,7 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
     let cfg = LearnerConfig {
         eval_episodes: 4,
         eval_sampled: true,
-        ..learner_config(run, Algo::Sac, 3_000)
+        ..support::point_learner(run, Algo::Sac, 3_000)
     };
     let learner = learner(&endpoint, cfg).await;
     let (_stop_a, actor_a) = actor(&endpoint, run, 0);

@@ -11,24 +11,11 @@ use std::time::Duration;
 
 use pbrl_common::bus::{wait_until, Inbox};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
-use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{self, Body, TrajectoryMsg};
-use pbrl_common::{Keys, StepRewards, Trajectory};
+use pbrl_common::Keys;
 
 /// A 200-step trajectory message (about 20 KB).
 fn message(run: &str, seq: u64) -> Vec<u8> {
-    let t = Trajectory {
-        format: TRAJECTORY_FORMAT,
-        seed: seq,
-        policy_version: 1,
-        obs_dim: 2,
-        act_dim: 1,
-        obs: vec![0.5; 2 * 201],
-        actions: vec![0.1; 200],
-        rewards: vec![StepRewards::default(); 200],
-        outcome: Default::default(),
-        replay: None,
-    };
     wire::encode(
         run,
         &Body::Trajectory(Box::new(TrajectoryMsg {
@@ -36,7 +23,7 @@ fn message(run: &str, seq: u64) -> Vec<u8> {
             incarnation: 1,
             seq,
             oldest: 0,
-            trajectory: t,
+            trajectory: support::trajectory(seq),
         })),
     )
 }

@@ -2,7 +2,14 @@
 //! closes them sooner, and every kind of bad message.
 #![allow(dead_code)] // NOTE: each test file uses its own part.
 
+use pbrl_actor::runner::Task;
+use pbrl_common::bus::wait_until;
+use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{self, Body};
+use pbrl_common::{StepRewards, Trajectory};
+use pbrl_learner::ppo::PpoConfig;
+use pbrl_learner::sac::SacConfig;
+use pbrl_learner::service::{Algo, LearnerConfig, RewardSource};
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Once;
@@ -102,4 +109,77 @@ pub fn bad_payloads(
         *good
     );
     bad
+}
+
+/// A learner config for the point task, small enough for tests (2 actors, no evaluation,
+/// no run folder).
+pub fn point_learner(run: &str, algo: Algo, total: u64) -> LearnerConfig {
+    let (obs_dim, act_dim) = Task::Point.dims();
+    LearnerConfig {
+        run: run.into(),
+        algo,
+        reward: RewardSource::True,
+        total_steps: total,
+        obs_dim,
+        act_dim,
+        sac: SacConfig {
+            hidden: vec![32, 32],
+            batch: 32,
+            random_steps: 300,
+            update_every: 2,
+            ..SacConfig::default()
+        },
+        ppo: PpoConfig {
+            hidden: vec![32, 32],
+            rollout_steps: 300,
+            minibatch: 64,
+            ..PpoConfig::default()
+        },
+        publish_every: 20,
+        log_every: 1000,
+        actors: 2,
+        episode_steps: pbrl_actor::runner::POINT_HORIZON,
+        eval_episodes: 0,
+        eval_sampled: false,
+        checkpoint_every: 0,
+        checkpoint_secs: 0,
+        keep_checkpoints: 2,
+        sync: false,
+        out: None,
+        progress: false,
+    }
+}
+
+/// A 200-step trajectory of a 2-dimensional task (about 20 KB on the wire).
+pub fn trajectory(seed: u64) -> Trajectory {
+    Trajectory {
+        format: TRAJECTORY_FORMAT,
+        seed,
+        policy_version: 3,
+        obs_dim: 2,
+        act_dim: 1,
+        obs: vec![0.5; 2 * 201],
+        actions: vec![0.1; 200],
+        rewards: vec![StepRewards::default(); 200],
+        outcome: Default::default(),
+        replay: None,
+    }
+}
+
+/// Put every payload on `key` from `session` (a foreign client), once a subscriber is
+/// known.
+pub async fn put_all(session: &zenoh::Session, key: &str, payloads: &[Vec<u8>]) {
+    let raw = session
+        .declare_publisher(key.to_string())
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
+    wait_until(std::time::Duration::from_secs(20), || async {
+        Ok(raw.matching_status().await.unwrap().matching())
+    })
+    .await
+    .unwrap();
+    for bytes in payloads {
+        raw.put(bytes.clone()).await.unwrap();
+    }
 }
