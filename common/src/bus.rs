@@ -340,10 +340,7 @@ impl WeightsClient {
             .declare_subscriber(keys.weights())
             .callback(move |sample| {
                 // NOTE: on zenoh's receive thread; keeping the newest never waits.
-                let Some(w) = accept(&run, &sample, &d, |b| match b {
-                    Body::Weights(w) => Some(w),
-                    _ => None,
-                }) else {
+                let Some(w) = accept(&run, &sample, &d, weights_body) else {
                     return;
                 };
                 tx.send_if_modified(|held| {
@@ -376,10 +373,7 @@ impl WeightsClient {
         let mut best: Option<Weights> = None;
         while let Ok(reply) = replies.recv_async().await {
             let Ok(sample) = reply.result() else { continue };
-            if let Some(w) = accept(&self.run, sample, &self.dropped, |b| match b {
-                Body::Weights(w) => Some(w),
-                _ => None,
-            }) {
+            if let Some(w) = accept(&self.run, sample, &self.dropped, weights_body) {
                 keep_newest(&mut best, w);
             }
         }
@@ -406,6 +400,14 @@ impl WeightsClient {
                 return Ok(w);
             }
         }
+    }
+}
+
+/// The weights a message holds, if it is weights.
+fn weights_body(b: Body) -> Option<Weights> {
+    match b {
+        Body::Weights(w) => Some(w),
+        _ => None,
     }
 }
 
