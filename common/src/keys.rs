@@ -74,6 +74,26 @@ impl Keys {
         format!("pbrl/{}/actor/*/eval", self.run)
     }
 
+    /// Preference queries asked by the learner (of any teacher).
+    pub fn queries(&self) -> String {
+        format!("pbrl/{}/learner/0/query", self.run)
+    }
+
+    /// Answers published by teacher `teacher`.
+    pub fn answer(&self, teacher: &str) -> String {
+        format!("pbrl/{}/teacher/{teacher}/answer", self.run)
+    }
+
+    /// Answers of every teacher (a subscription).
+    pub fn all_answers(&self) -> String {
+        format!("pbrl/{}/teacher/*/answer", self.run)
+    }
+
+    /// The learner's acknowledgements of teacher `teacher`'s stored answers.
+    pub fn answer_ack(&self, teacher: &str) -> String {
+        format!("pbrl/{}/learner/0/ack/{teacher}", self.run)
+    }
+
     /// The learner's stop signal to the run's actors.
     pub fn stop(&self) -> String {
         format!("pbrl/{}/learner/0/stop", self.run)

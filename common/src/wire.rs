@@ -5,10 +5,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::trajectory::{Outcome, Trajectory, TrajectoryError};
+use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 3;
+pub const WIRE_FORMAT: u16 = 4;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -109,6 +109,107 @@ pub struct Stop {
     pub version: u64,
 }
 
+/// One trajectory of a query, with what a teacher needs to judge it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Shown {
+    /// The label store's id of the trajectory.
+    pub id: u64,
+    /// Seed of the episode's reset (with the actions and the world config, the world
+    /// replays the episode exactly).
+    pub seed: u64,
+    /// Version of the policy that acted.
+    pub policy_version: u64,
+    /// The actions, `steps` rows of `act_dim`, as the policy gave them.
+    pub act_dim: u32,
+    pub actions: Vec<f32>,
+    /// Per-step ground-truth reward r, for scripted teachers only (the learner never
+    /// trains on it; a person judges the replay instead).
+    pub truth: Vec<f32>,
+    /// What a person needs to watch the episode (absent for tasks with nothing to draw,
+    /// or when the learner is not asked to send it).
+    pub replay: Option<Replay>,
+}
+
+impl Shown {
+    /// Env steps of the trajectory.
+    pub fn steps(&self) -> usize {
+        self.truth.len()
+    }
+}
+
+/// "Which of these two attempts was better?", asked by the learner of any teacher.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Query {
+    /// The label store's id of the query: unique over the run, across restarts.
+    pub id: u64,
+    /// The feedback session that asked it (1, 2, ...).
+    pub session: u64,
+    /// Unix time in milliseconds when it was first asked.
+    pub asked_at_ms: u64,
+    pub first: Shown,
+    pub second: Shown,
+}
+
+/// A teacher's judgement of a query.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Preference {
+    /// The first trajectory was better.
+    First,
+    /// The second trajectory was better.
+    Second,
+    /// Both were as good (the soft target (0.5, 0.5)).
+    Equal,
+    /// The teacher cannot tell (not stored in D, but counted against the budget).
+    Skip,
+}
+
+impl Preference {
+    /// The name used in the label store and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preference::First => "first",
+            Preference::Second => "second",
+            Preference::Equal => "equal",
+            Preference::Skip => "skip",
+        }
+    }
+
+    /// The inverse of [`Preference::name`].
+    pub fn parse(s: &str) -> Option<Self> {
+        [
+            Preference::First,
+            Preference::Second,
+            Preference::Equal,
+            Preference::Skip,
+        ]
+        .into_iter()
+        .find(|p| p.name() == s)
+    }
+}
+
+/// A teacher's answer to one query.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Answer {
+    /// The query answered.
+    pub query: u64,
+    pub preference: Preference,
+    /// The kind of teacher (`oracle`, `noisy`, ..., `human`).
+    pub teacher: String,
+    /// This teacher's id (1-64 characters of a-z, 0-9, '-' and '_'): where the
+    /// acknowledgement goes.
+    pub teacher_id: String,
+    /// How long the teacher took, in milliseconds (a person's time).
+    pub took_ms: u64,
+}
+
+/// The learner's word that it stored these answers of teacher `teacher_id` (committed to
+/// the label store): the teacher may forget them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnswerAck {
+    pub teacher_id: String,
+    pub queries: Vec<u64>,
+}
+
 /// Everything that travels.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Body {
@@ -117,6 +218,9 @@ pub enum Body {
     EvalRequest(Box<EvalRequest>),
     EvalResult(EvalResult),
     Stop(Stop),
+    Query(Box<Query>),
+    Answer(Answer),
+    AnswerAck(AnswerAck),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -145,8 +249,25 @@ pub enum WireError {
     },
     #[error("field {field} holds a non-finite value")]
     NonFinite { field: String },
+    #[error("field {field} is {value:?}: {reason}")]
+    Invalid {
+        field: String,
+        value: String,
+        reason: &'static str,
+    },
     #[error(transparent)]
     Trajectory(#[from] TrajectoryError),
+}
+
+/// Check a teacher id as it appears in key expressions.
+pub fn check_teacher_id(field: &str, id: &str) -> Result<(), WireError> {
+    crate::keys::Keys::new(id)
+        .map(|_| ())
+        .map_err(|e| WireError::Invalid {
+            field: field.to_string(),
+            value: id.chars().take(80).collect(),
+            reason: e.reason,
+        })
 }
 
 /// Encode `body` for run `run`.
@@ -208,6 +329,33 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
             }
         }
         Body::Stop(_) => {}
+        Body::Query(q) => {
+            for (side, s) in [("first", &q.first), ("second", &q.second)] {
+                if s.actions.len() != s.steps() * s.act_dim as usize {
+                    return Err(WireError::Shape {
+                        field: format!("{side}.actions"),
+                        found: s.actions.len(),
+                        expected: s.steps() * s.act_dim as usize,
+                    });
+                }
+                if s.truth.iter().chain(&s.actions).any(|x| !x.is_finite()) {
+                    return Err(WireError::NonFinite {
+                        field: format!("{side}.truth or {side}.actions"),
+                    });
+                }
+            }
+        }
+        Body::Answer(a) => {
+            check_teacher_id("teacher_id", &a.teacher_id)?;
+            if a.teacher.is_empty() || a.teacher.len() > 64 {
+                return Err(WireError::Invalid {
+                    field: "teacher".into(),
+                    value: a.teacher.chars().take(80).collect(),
+                    reason: "must be 1 to 64 characters long",
+                });
+            }
+        }
+        Body::AnswerAck(a) => check_teacher_id("teacher_id", &a.teacher_id)?,
     }
     Ok(env.body)
 }
@@ -316,5 +464,65 @@ mod tests {
             decode("r", &vec![0u8; MAX_MESSAGE_BYTES + 1]),
             Err(WireError::TooLarge { .. })
         ));
+    }
+
+    fn shown(id: u64, steps: usize) -> Shown {
+        Shown {
+            id,
+            seed: 7,
+            policy_version: 2,
+            act_dim: 2,
+            actions: vec![0.5; 2 * steps],
+            truth: vec![-1.0; steps],
+            replay: None,
+        }
+    }
+
+    #[test]
+    fn queries_and_answers_round_trip_and_bad_ones_are_refused() {
+        let q = Body::Query(Box::new(Query {
+            id: 3,
+            session: 1,
+            asked_at_ms: 1,
+            first: shown(1, 4),
+            second: shown(2, 4),
+        }));
+        assert_eq!(decode("r", &encode("r", &q)).unwrap(), q);
+        let mut bad = shown(1, 4);
+        bad.actions.pop();
+        let e = decode(
+            "r",
+            &encode(
+                "r",
+                &Body::Query(Box::new(Query {
+                    id: 3,
+                    session: 1,
+                    asked_at_ms: 1,
+                    first: shown(1, 4),
+                    second: bad,
+                })),
+            ),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("second.actions"), "{e}");
+        let answer = |teacher_id: &str| Answer {
+            query: 3,
+            preference: Preference::Equal,
+            teacher: "oracle".into(),
+            teacher_id: teacher_id.into(),
+            took_ms: 2,
+        };
+        let a = Body::Answer(answer("oracle-0"));
+        assert_eq!(decode("r", &encode("r", &a)).unwrap(), a);
+        let e = decode("r", &encode("r", &Body::Answer(answer("a/b")))).unwrap_err();
+        assert!(e.to_string().contains("teacher_id"), "{e}");
+        for p in [
+            Preference::First,
+            Preference::Second,
+            Preference::Equal,
+            Preference::Skip,
+        ] {
+            assert_eq!(Preference::parse(p.name()), Some(p));
+        }
     }
 }
