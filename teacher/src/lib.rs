@@ -1,2 +1,4 @@
-//! The teachers: scripted (the six B-Pref teachers) and human. Built by the preference
-//! learning issues; empty until then.
+//! The teachers that answer preference queries. [`scripted`]: the six B-Pref scripted
+//! teachers of paper Table I, which judge from the ground-truth reward.
+
+pub mod scripted;

@@ -1,0 +1,660 @@
+//! The six scripted teachers of B-Pref (paper Table I, `method.md` section 4): each judges a
+//! pair of trajectories from their per-step ground-truth rewards, in the order of B-Pref's
+//! `get_label`: skip, equal, myopic discount, Bradley-Terry choice, mistake.
+//!
+//! R_avg, which scales the skip and equal thresholds, is the mean ground-truth return of
+//! the last `avg_window` trajectories the teacher was shown, so the teacher needs nothing
+//! from the learner but the pairs themselves.
+
+use std::collections::VecDeque;
+
+use anyhow::{ensure, Result};
+use pbrl_common::wire::Preference;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+/// The six teachers of Table I.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum TeacherKind {
+    /// Perfectly rational: always the larger return.
+    Oracle,
+    /// Bradley-Terry choice with beta = 1.
+    Noisy,
+    /// The oracle's answer, flipped with probability 0.1.
+    Mistake,
+    /// Skips a query whose better trajectory is poor (delta_skip = 0.1).
+    Skip,
+    /// Answers "equal" when the returns are close (delta_equal = 0.1).
+    Equal,
+    /// Weighs late steps more (gamma_my = 0.99).
+    Myopic,
+}
+
+impl TeacherKind {
+    /// Every kind, in the order of Table I.
+    pub const ALL: [TeacherKind; 6] = [
+        TeacherKind::Oracle,
+        TeacherKind::Noisy,
+        TeacherKind::Mistake,
+        TeacherKind::Skip,
+        TeacherKind::Equal,
+        TeacherKind::Myopic,
+    ];
+
+    /// The name used in configs, on the command line and in answers (`oracle`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            TeacherKind::Oracle => "oracle",
+            TeacherKind::Noisy => "noisy",
+            TeacherKind::Mistake => "mistake",
+            TeacherKind::Skip => "skip",
+            TeacherKind::Equal => "equal",
+            TeacherKind::Myopic => "myopic",
+        }
+    }
+}
+
+/// One scripted teacher. [`ScriptedConfig::of`] gives the values of Table I; every field
+/// may be changed, so the teachers can also be combined (say a myopic teacher that errs).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScriptedConfig {
+    /// Which row of Table I this started from (names the teacher in answers and logs).
+    pub kind: TeacherKind,
+    /// Rationality beta of the Bradley-Terry choice; None = infinity (always the larger sum).
+    pub beta: Option<f64>,
+    /// Myopic discount gamma_my: step t of T is weighted gamma^(T-1-t) (1 = none).
+    pub gamma: f64,
+    /// Probability of flipping the answer (a mistake).
+    pub eps: f64,
+    /// Skip threshold delta_skip, a fraction of R_avg - r_min (0 = never skip).
+    pub delta_skip: f64,
+    /// Equal threshold delta_equal, a fraction of R_avg - r_min (0 = never equal).
+    pub delta_equal: f64,
+    /// Lowest possible return (the authors use -350 for feeding).
+    pub r_min: f64,
+    /// R_avg is the mean ground-truth return of the last this-many trajectories shown.
+    pub avg_window: usize,
+    /// Seeds the teacher's random draws.
+    pub seed: u64,
+}
+
+impl ScriptedConfig {
+    /// The values of Table I for `kind`, with r_min -350 and avg_window 100.
+    pub fn of(kind: TeacherKind, seed: u64) -> Self {
+        let oracle = ScriptedConfig {
+            kind,
+            beta: None,
+            gamma: 1.0,
+            eps: 0.0,
+            delta_skip: 0.0,
+            delta_equal: 0.0,
+            r_min: -350.0,
+            avg_window: 100,
+            seed,
+        };
+        match kind {
+            TeacherKind::Oracle => oracle,
+            TeacherKind::Noisy => ScriptedConfig {
+                beta: Some(1.0),
+                ..oracle
+            },
+            TeacherKind::Mistake => ScriptedConfig { eps: 0.1, ..oracle },
+            TeacherKind::Skip => ScriptedConfig {
+                delta_skip: 0.1,
+                ..oracle
+            },
+            TeacherKind::Equal => ScriptedConfig {
+                delta_equal: 0.1,
+                ..oracle
+            },
+            TeacherKind::Myopic => ScriptedConfig {
+                gamma: 0.99,
+                ..oracle
+            },
+        }
+    }
+
+    /// Check every field; the error names the field and its value.
+    pub fn validate(&self) -> Result<()> {
+        if let Some(beta) = self.beta {
+            ensure!(
+                beta.is_finite() && beta > 0.0,
+                "teacher beta = {beta}: must be a finite number > 0 (leave it out for a \
+                 perfectly rational teacher)"
+            );
+        }
+        ensure!(
+            self.gamma > 0.0 && self.gamma <= 1.0,
+            "teacher gamma = {}: must be in (0, 1]",
+            self.gamma
+        );
+        ensure!(
+            (0.0..=1.0).contains(&self.eps),
+            "teacher eps = {}: must be in [0, 1]",
+            self.eps
+        );
+        ensure!(
+            self.delta_skip.is_finite() && self.delta_skip >= 0.0,
+            "teacher delta_skip = {}: must be a finite number >= 0",
+            self.delta_skip
+        );
+        ensure!(
+            self.delta_equal.is_finite() && self.delta_equal >= 0.0,
+            "teacher delta_equal = {}: must be a finite number >= 0",
+            self.delta_equal
+        );
+        ensure!(
+            self.r_min.is_finite(),
+            "teacher r_min = {}: must be finite",
+            self.r_min
+        );
+        ensure!(
+            self.avg_window >= 1,
+            "teacher avg_window = {}: must be at least 1",
+            self.avg_window
+        );
+        Ok(())
+    }
+}
+
+/// A scripted teacher: its config, its random source and the returns it was shown.
+///
+/// Random draws, from a ChaCha8 stream seeded with `cfg.seed`: one uniform f64 for the
+/// Bradley-Terry choice when beta is finite, then one uniform f64 for the mistake when
+/// eps > 0; none for a query answered Skip or Equal. So a teacher's answers are a function
+/// of its seed and the queries it saw, in order.
+#[derive(Clone, Debug)]
+pub struct Scripted {
+    cfg: ScriptedConfig,
+    rng: ChaCha8Rng,
+    /// Ground-truth returns of the last `cfg.avg_window` trajectories shown, oldest first.
+    shown: VecDeque<f64>,
+}
+
+impl Scripted {
+    /// A teacher with a validated config.
+    pub fn new(cfg: ScriptedConfig) -> Result<Self> {
+        cfg.validate()?;
+        Ok(Scripted {
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            shown: VecDeque::with_capacity(cfg.avg_window),
+            cfg,
+        })
+    }
+
+    /// The config this teacher runs with.
+    pub fn config(&self) -> &ScriptedConfig {
+        &self.cfg
+    }
+
+    /// Judge a pair from each trajectory's per-step ground-truth reward r. The two may
+    /// differ in length (returns are sums). An empty trajectory, or one with a non-finite
+    /// reward, cannot be judged: the answer is Skip, and neither return is remembered.
+    pub fn answer(&mut self, first: &[f32], second: &[f32]) -> Preference {
+        let (r0, r1) = (sum(first), sum(second));
+        if first.is_empty() || second.is_empty() || !r0.is_finite() || !r1.is_finite() {
+            return Preference::Skip;
+        }
+        // NOTE: both returns join the window before judging, so R_avg includes this pair.
+        self.remember(r0);
+        self.remember(r1);
+        let cfg = &self.cfg;
+        // `remember` just pushed two returns and avg_window >= 1, so the window is not empty.
+        let r_avg = self.r_avg().expect("the window holds this pair's returns");
+        let scale = r_avg - cfg.r_min;
+
+        // 1. Skip when even the better trajectory is poor.
+        if cfg.delta_skip > 0.0 && r0.max(r1) - cfg.r_min < scale * cfg.delta_skip {
+            return Preference::Skip;
+        }
+        // 2. Equal when the (undiscounted) returns are close.
+        // NOTE: Equal overrides the noisy choice and a mistake, so it draws nothing.
+        if cfg.delta_equal > 0.0 && (r0 - r1).abs() < scale * cfg.delta_equal {
+            return Preference::Equal;
+        }
+        // 3. Myopic: step t of T weighted gamma^(T-1-t).
+        let (d0, d1) = if cfg.gamma < 1.0 {
+            (discounted(first, cfg.gamma), discounted(second, cfg.gamma))
+        } else {
+            (r0, r1)
+        };
+        // 4. Bradley-Terry choice, or the larger sum (a tie is First, as B-Pref's
+        //    `1 * (sum1 < sum2)`).
+        let mut second_better = match cfg.beta {
+            Some(beta) => self.rng.random::<f64>() < sigmoid(beta * (d1 - d0)),
+            None => d1 > d0,
+        };
+        // 5. Mistake: flip with probability eps.
+        if cfg.eps > 0.0 && self.rng.random::<f64>() < cfg.eps {
+            second_better = !second_better;
+        }
+        if second_better {
+            Preference::Second
+        } else {
+            Preference::First
+        }
+    }
+
+    /// Mean ground-truth return of the last `avg_window` trajectories shown; None before
+    /// the first pair.
+    pub fn r_avg(&self) -> Option<f64> {
+        if self.shown.is_empty() {
+            None
+        } else {
+            Some(self.shown.iter().sum::<f64>() / self.shown.len() as f64)
+        }
+    }
+
+    fn remember(&mut self, ret: f64) {
+        if self.shown.len() == self.cfg.avg_window {
+            self.shown.pop_front();
+        }
+        self.shown.push_back(ret);
+    }
+}
+
+/// Undiscounted return, summed in f64.
+fn sum(r: &[f32]) -> f64 {
+    r.iter().map(|&x| f64::from(x)).sum()
+}
+
+/// sum_t gamma^(T-1-t) r_t, by Horner's rule (the last step has weight 1).
+fn discounted(r: &[f32], gamma: f64) -> f64 {
+    r.iter().fold(0.0, |acc, &x| acc * gamma + f64::from(x))
+}
+
+/// 1 / (1 + e^-x), without overflow for large |x|.
+fn sigmoid(x: f64) -> f64 {
+    if x >= 0.0 {
+        1.0 / (1.0 + (-x).exp())
+    } else {
+        let e = x.exp();
+        e / (1.0 + e)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::ValueEnum;
+    use Preference::{Equal, First, Second, Skip};
+
+    fn teacher(cfg: ScriptedConfig) -> Scripted {
+        Scripted::new(cfg).unwrap() // the configs here are valid
+    }
+
+    fn table(kind: TeacherKind) -> Scripted {
+        teacher(ScriptedConfig::of(kind, 7))
+    }
+
+    /// Fraction of `n` answers to the same pair that are `Second`.
+    fn second_rate(t: &mut Scripted, first: &[f32], second: &[f32], n: usize) -> f64 {
+        let k = (0..n).filter(|_| t.answer(first, second) == Second).count();
+        k as f64 / n as f64
+    }
+
+    #[test]
+    fn table_one_values_and_names() {
+        // (kind, beta, gamma, eps, delta_skip, delta_equal) from method.md section 4.
+        let rows = [
+            (TeacherKind::Oracle, None, 1.0, 0.0, 0.0, 0.0),
+            (TeacherKind::Noisy, Some(1.0), 1.0, 0.0, 0.0, 0.0),
+            (TeacherKind::Mistake, None, 1.0, 0.1, 0.0, 0.0),
+            (TeacherKind::Skip, None, 1.0, 0.0, 0.1, 0.0),
+            (TeacherKind::Equal, None, 1.0, 0.0, 0.0, 0.1),
+            (TeacherKind::Myopic, None, 0.99, 0.0, 0.0, 0.0),
+        ];
+        for (kind, beta, gamma, eps, delta_skip, delta_equal) in rows {
+            let c = ScriptedConfig::of(kind, 3);
+            let want = ScriptedConfig {
+                kind,
+                beta,
+                gamma,
+                eps,
+                delta_skip,
+                delta_equal,
+                r_min: -350.0,
+                avg_window: 100,
+                seed: 3,
+            };
+            assert_eq!(c, want);
+            c.validate().unwrap();
+            // One name for the config file, the command line and answers.
+            let serde_name = serde_json::to_string(&kind).unwrap();
+            assert_eq!(serde_name, format!("\"{}\"", kind.name()));
+            let clap_name = kind.to_possible_value().unwrap();
+            assert_eq!(clap_name.get_name(), kind.name());
+            let back: ScriptedConfig =
+                serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+            assert_eq!(back, c);
+        }
+        assert_eq!(TeacherKind::ALL.len(), rows.len());
+    }
+
+    #[test]
+    fn oracle_prefers_the_larger_sum_and_a_tie_is_first() {
+        let mut t = table(TeacherKind::Oracle);
+        // sums: 3 vs 4 -> Second; 4 vs 3 -> First
+        assert_eq!(t.answer(&[1.0, 2.0], &[0.0, 4.0]), Second);
+        assert_eq!(t.answer(&[0.0, 4.0], &[1.0, 2.0]), First);
+        // Different lengths: 1 + 1 + 1 = 3 > 2.
+        assert_eq!(t.answer(&[1.0, 1.0, 1.0], &[2.0]), First);
+        // A tie is First (B-Pref: label = 1 * (sum1 < sum2) = 0).
+        assert_eq!(t.answer(&[1.0, 2.0], &[3.0]), First);
+        // Feeding-like negative returns: -120 vs -80.
+        assert_eq!(t.answer(&[-60.0, -60.0], &[-40.0, -40.0]), Second);
+    }
+
+    #[test]
+    fn mistake_flips_at_rate_eps_and_is_deterministic_per_seed() {
+        // Oracle answer First (5 > 1); a mistake teacher answers Second with rate 0.1.
+        let (a, b) = ([5.0f32], [1.0f32]);
+        let n = 4000;
+        let rate = second_rate(&mut table(TeacherKind::Mistake), &a, &b, n);
+        // std of the rate: sqrt(0.1 * 0.9 / 4000) = 0.0047; allow about 4 std.
+        assert!((rate - 0.1).abs() < 0.02, "flip rate {rate}");
+        let answers = |seed| {
+            let mut t = teacher(ScriptedConfig::of(TeacherKind::Mistake, seed));
+            (0..200).map(|_| t.answer(&a, &b)).collect::<Vec<_>>()
+        };
+        assert_eq!(answers(11), answers(11));
+        assert_ne!(answers(11), answers(12));
+    }
+
+    #[test]
+    fn skip_happens_below_the_threshold_and_not_above() {
+        // Both teachers first see two pairs of return -50, then one pair whose returns sum
+        // to -670, so the window holds the same six returns:
+        //   R_avg = (4 * -50 + -670) / 6 = -145.0
+        //   threshold = (R_avg - r_min) * delta_skip = (-145 + 350) * 0.1 = 20.5
+        // Pair (-330, -340): max - r_min = -330 + 350 = 20 < 20.5 -> Skip.
+        // Pair (-329, -341): max - r_min = -329 + 350 = 21 > 20.5 -> judged, First.
+        let warm = |t: &mut Scripted| {
+            for _ in 0..2 {
+                // max - r_min = 300 > (-50 + 350) * 0.1 = 30: judged (a tie, First)
+                assert_eq!(t.answer(&[-25.0, -25.0], &[-50.0]), First);
+            }
+        };
+        let mut below = table(TeacherKind::Skip);
+        warm(&mut below);
+        assert_eq!(below.answer(&[-165.0, -165.0], &[-340.0]), Skip);
+        assert_eq!(below.r_avg(), Some(-145.0));
+
+        let mut above = table(TeacherKind::Skip);
+        warm(&mut above);
+        assert_eq!(above.answer(&[-329.0], &[-341.0]), First);
+        assert_eq!(above.r_avg(), Some(-145.0));
+
+        // The oracle never skips the same pair.
+        let mut oracle = table(TeacherKind::Oracle);
+        warm(&mut oracle);
+        assert_eq!(oracle.answer(&[-165.0, -165.0], &[-340.0]), First);
+    }
+
+    #[test]
+    fn equal_answers_close_pairs_and_overrides_a_mistake() {
+        // First pair: window [-100, -101], R_avg = -100.5,
+        //   threshold = (-100.5 + 350) * 0.1 = 24.95; |(-100) - (-101)| = 1 < 24.95 -> Equal.
+        // Second pair: window [-100, -101, -50, -250], R_avg = -125.25,
+        //   threshold = (-125.25 + 350) * 0.1 = 22.475; |-50 - -250| = 200 -> not equal,
+        //   the oracle says First.
+        let near = ([-50.0f32, -50.0], [-101.0f32]);
+        let far = ([-50.0f32], [-125.0f32, -125.0]);
+
+        let mut equal = table(TeacherKind::Equal);
+        assert_eq!(equal.answer(&near.0, &near.1), Equal);
+        assert_eq!(equal.answer(&far.0, &far.1), First);
+
+        // With eps = 1 every answer is flipped, except Equal, which overrides the mistake.
+        let mut erring = teacher(ScriptedConfig {
+            eps: 1.0,
+            ..ScriptedConfig::of(TeacherKind::Equal, 7)
+        });
+        assert_eq!(erring.answer(&near.0, &near.1), Equal);
+        assert_eq!(erring.answer(&far.0, &far.1), Second);
+        assert_eq!(erring.r_avg(), Some(-125.25));
+    }
+
+    #[test]
+    fn equal_is_judged_on_undiscounted_sums() {
+        // gamma = 0.5: first [-100, -100]: R = -200, R' = 0.5 * -100 + -100 = -150
+        //              second [-200, 0]:   R = -200, R' = 0.5 * -200 + 0    = -100
+        // Undiscounted the two are equal (|R0 - R1| = 0 < threshold) -> Equal, although
+        // the myopic sums alone would pick Second.
+        let cfg = ScriptedConfig {
+            gamma: 0.5,
+            ..ScriptedConfig::of(TeacherKind::Equal, 7)
+        };
+        assert_eq!(
+            teacher(cfg).answer(&[-100.0, -100.0], &[-200.0, 0.0]),
+            Equal
+        );
+        let cfg = ScriptedConfig {
+            gamma: 0.5,
+            ..ScriptedConfig::of(TeacherKind::Oracle, 7)
+        };
+        assert_eq!(
+            teacher(cfg).answer(&[-100.0, -100.0], &[-200.0, 0.0]),
+            Second
+        );
+    }
+
+    #[test]
+    fn myopic_weighs_late_steps_and_can_reverse_the_oracle() {
+        // Reference (Python):
+        //   first = [10] + [0] * 99;  second = [0] * 99 + [9]
+        //   sum(first), sum(second)                                   # 10, 9: oracle First
+        //   sum(r * 0.99 ** (99 - t) for t, r in enumerate(first))   # 3.697296376497264
+        //   sum(r * 0.99 ** (99 - t) for t, r in enumerate(second))  # 9.0: myopic Second
+        let mut first = vec![0.0f32; 100];
+        first[0] = 10.0;
+        let mut second = vec![0.0f32; 100];
+        second[99] = 9.0;
+        assert!((discounted(&first, 0.99) - 3.697296376497264).abs() < 1e-12);
+        assert_eq!(discounted(&second, 0.99), 9.0);
+        assert_eq!(table(TeacherKind::Oracle).answer(&first, &second), First);
+        assert_eq!(table(TeacherKind::Myopic).answer(&first, &second), Second);
+
+        // Each trajectory is weighted from its own last step:
+        //   [1, 2, 3] at 0.5: 1 * 0.25 + 2 * 0.5 + 3 = 4.25;  [4.5]: 4.5
+        assert_eq!(discounted(&[1.0, 2.0, 3.0], 0.5), 4.25);
+        assert_eq!(discounted(&[], 0.5), 0.0);
+        let mut t = teacher(ScriptedConfig {
+            gamma: 0.5,
+            ..ScriptedConfig::of(TeacherKind::Myopic, 7)
+        });
+        assert_eq!(t.answer(&[1.0, 2.0, 3.0], &[4.5]), Second); // undiscounted: 6 > 4.5
+    }
+
+    #[test]
+    fn noisy_matches_the_sigmoid_and_is_deterministic_per_seed() {
+        // Reference (Python): 1 / (1 + math.exp(-0.5)) = 0.6224593312018546
+        assert!((sigmoid(0.5) - 0.6224593312018546).abs() < 1e-15);
+        assert_eq!(sigmoid(0.0), 0.5);
+        // Stable at the extremes: no NaN, no overflow.
+        assert_eq!(sigmoid(1000.0), 1.0);
+        assert_eq!(sigmoid(-1000.0), 0.0);
+        assert!((sigmoid(-0.5) - (1.0 - 0.6224593312018546)).abs() < 1e-15);
+
+        // R0 = 1, R1 = 1.5: P[Second] = sigmoid(1 * 0.5) = 0.6225.
+        let (a, b) = ([0.5f32, 0.5], [1.5f32]);
+        let n = 4000;
+        let rate = second_rate(&mut table(TeacherKind::Noisy), &a, &b, n);
+        // std of the rate: sqrt(0.6225 * 0.3775 / 4000) = 0.0077; allow about 4 std.
+        assert!((rate - 0.6224593312018546).abs() < 0.03, "rate {rate}");
+        // Swapped, P[Second] = sigmoid(-0.5) = 0.3775.
+        let rate = second_rate(&mut table(TeacherKind::Noisy), &b, &a, n);
+        assert!(
+            (rate - 0.3775406687981454).abs() < 0.03,
+            "swapped rate {rate}"
+        );
+        // Far apart the choice is certain.
+        let mut t = table(TeacherKind::Noisy);
+        assert_eq!(second_rate(&mut t, &[-1000.0], &[0.0], 100), 1.0);
+        assert_eq!(second_rate(&mut t, &[0.0], &[-1000.0], 100), 0.0);
+
+        let answers = |seed| {
+            let mut t = teacher(ScriptedConfig::of(TeacherKind::Noisy, seed));
+            (0..200).map(|_| t.answer(&a, &b)).collect::<Vec<_>>()
+        };
+        assert_eq!(answers(5), answers(5));
+        assert_ne!(answers(5), answers(6));
+    }
+
+    #[test]
+    fn draws_happen_only_where_documented() {
+        // One f64 draw takes one u64, two 32-bit words of the ChaCha stream.
+        let words = |t: &Scripted| t.rng.get_word_pos();
+        for kind in [
+            TeacherKind::Oracle,
+            TeacherKind::Skip,
+            TeacherKind::Equal,
+            TeacherKind::Myopic,
+        ] {
+            let mut t = table(kind);
+            for _ in 0..10 {
+                t.answer(&[1.0, 2.0], &[3.0, -1.0]);
+            }
+            assert_eq!(words(&t), 0, "{kind:?} drew");
+        }
+        // Noisy: one draw per judged query; mistake: one per query.
+        let mut t = table(TeacherKind::Noisy);
+        t.answer(&[1.0], &[2.0]);
+        assert_eq!(words(&t), 2);
+        let mut t = table(TeacherKind::Mistake);
+        t.answer(&[1.0], &[2.0]);
+        assert_eq!(words(&t), 2);
+        // Both: two draws. Skip and Equal answers draw nothing.
+        let mut t = teacher(ScriptedConfig {
+            eps: 0.1,
+            delta_equal: 0.1,
+            ..ScriptedConfig::of(TeacherKind::Noisy, 7)
+        });
+        t.answer(&[-10.0], &[-200.0]);
+        assert_eq!(words(&t), 4);
+        assert_eq!(t.answer(&[-10.0], &[-10.5]), Equal);
+        assert_eq!(words(&t), 4);
+    }
+
+    #[test]
+    fn r_avg_is_the_mean_of_the_last_window_returns_shown() {
+        let mut t = teacher(ScriptedConfig {
+            avg_window: 3,
+            ..ScriptedConfig::of(TeacherKind::Oracle, 7)
+        });
+        assert_eq!(t.r_avg(), None);
+        t.answer(&[1.0], &[2.0]); // window [1, 2]
+        assert_eq!(t.r_avg(), Some(1.5));
+        t.answer(&[1.0, 2.0], &[4.0]); // window [2, 3, 4]
+        assert_eq!(t.r_avg(), Some(3.0));
+        t.answer(&[10.0], &[15.0, 5.0]); // window [4, 10, 20]
+        assert_eq!(t.r_avg(), Some(34.0 / 3.0));
+    }
+
+    #[test]
+    fn empty_or_non_finite_trajectories_are_skipped_and_not_remembered() {
+        let mut t = table(TeacherKind::Noisy);
+        assert_eq!(t.answer(&[], &[1.0]), Skip);
+        assert_eq!(t.answer(&[1.0], &[]), Skip);
+        assert_eq!(t.answer(&[], &[]), Skip);
+        assert_eq!(t.answer(&[f32::NAN], &[1.0]), Skip);
+        assert_eq!(t.answer(&[1.0], &[2.0, f32::INFINITY]), Skip);
+        assert_eq!(t.r_avg(), None);
+        assert_eq!(t.rng.get_word_pos(), 0);
+    }
+
+    #[test]
+    fn validate_names_the_field_and_its_value() {
+        let base = || ScriptedConfig::of(TeacherKind::Oracle, 7);
+        let cases = [
+            (
+                ScriptedConfig {
+                    beta: Some(0.0),
+                    ..base()
+                },
+                "beta = 0",
+            ),
+            (
+                ScriptedConfig {
+                    beta: Some(f64::INFINITY),
+                    ..base()
+                },
+                "beta = inf",
+            ),
+            (
+                ScriptedConfig {
+                    gamma: 0.0,
+                    ..base()
+                },
+                "gamma = 0",
+            ),
+            (
+                ScriptedConfig {
+                    gamma: 1.5,
+                    ..base()
+                },
+                "gamma = 1.5",
+            ),
+            (
+                ScriptedConfig {
+                    eps: -0.1,
+                    ..base()
+                },
+                "eps = -0.1",
+            ),
+            (ScriptedConfig { eps: 1.1, ..base() }, "eps = 1.1"),
+            (
+                ScriptedConfig {
+                    eps: f64::NAN,
+                    ..base()
+                },
+                "eps = NaN",
+            ),
+            (
+                ScriptedConfig {
+                    delta_skip: -1.0,
+                    ..base()
+                },
+                "delta_skip = -1",
+            ),
+            (
+                ScriptedConfig {
+                    delta_equal: f64::NAN,
+                    ..base()
+                },
+                "delta_equal = NaN",
+            ),
+            (
+                ScriptedConfig {
+                    r_min: f64::NEG_INFINITY,
+                    ..base()
+                },
+                "r_min = -inf",
+            ),
+            (
+                ScriptedConfig {
+                    avg_window: 0,
+                    ..base()
+                },
+                "avg_window = 0",
+            ),
+        ];
+        for (cfg, want) in cases {
+            let err = cfg.validate().unwrap_err().to_string();
+            assert!(err.contains(want), "{err:?} should contain {want:?}");
+            let err = Scripted::new(cfg).unwrap_err().to_string();
+            assert!(err.contains(want), "{err:?} should contain {want:?}");
+        }
+        ScriptedConfig {
+            eps: 1.0,
+            gamma: 1e-3,
+            beta: Some(1e-3),
+            ..base()
+        }
+        .validate()
+        .unwrap();
+    }
+}
