@@ -1,8 +1,10 @@
 //! The learner: the RL backbones (SAC and PPO, each in one file that reads like its
-//! paper), the service that trains them over Zenoh, and the run folder with its
-//! checkpoints. The reward ensemble and query selection come with their issues.
+//! paper), the service that trains them over Zenoh, the run folder with its checkpoints,
+//! and the label store (the preference dataset D). The reward ensemble and query
+//! selection come with their issues.
 
 pub mod bench;
+pub mod labels;
 pub mod optim;
 pub mod ppo;
 pub mod run_folder;
