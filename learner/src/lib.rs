@@ -3,8 +3,10 @@
 //! checkpoints. The reward ensemble and query selection come with their issues.
 
 pub mod bench;
+pub mod entropy;
 pub mod optim;
 pub mod ppo;
+pub mod query;
 pub mod run_folder;
 pub mod sac;
 pub mod service;
