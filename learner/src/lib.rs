@@ -4,9 +4,11 @@
 //! selection come with their issues.
 
 pub mod bench;
+pub mod entropy;
 pub mod labels;
 pub mod optim;
 pub mod ppo;
+pub mod query;
 pub mod run_folder;
 pub mod sac;
 pub mod service;
