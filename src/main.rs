@@ -5,7 +5,7 @@ mod plot;
 mod train;
 
 use anyhow::Result;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -29,6 +29,8 @@ enum Command {
     Learner(train::TrainArgs),
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
+    /// Run a scripted teacher alone, answering a run's preference queries over Zenoh.
+    Teacher(train::TeacherProcessArgs),
     /// Experiments: a grid of runs (`pbrl exp run GRID.toml`) and its figures (`pbrl exp plot DIR`).
     #[command(subcommand)]
     Exp(exp::ExpCommand),
@@ -40,7 +42,17 @@ enum Command {
 fn main() -> Result<()> {
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
-    let command = Cli::parse().command;
+    let matches = Cli::command().get_matches();
+    let mut command = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => cli.command,
+        Err(e) => e.exit(),
+    };
+    // NOTE: presets change only what the user did not give on the command line.
+    if let (Command::Train(a) | Command::Learner(a), Some((_, m))) =
+        (&mut command, matches.subcommand())
+    {
+        a.learn.explicit = train::explicit_flags(m);
+    }
     // The log goes to stderr and, for a run, to its folder's `train.log` (appended).
     let log_file = match &command {
         Command::Train(a) | Command::Learner(a) => {
@@ -105,6 +117,7 @@ fn main() -> Result<()> {
             Command::Train(a) => train::train(a).await,
             Command::Learner(a) => train::learner(a).await,
             Command::Actor(a) => train::actor(a).await,
+            Command::Teacher(a) => train::teacher(a).await,
             Command::Env(_) | Command::Bench(_) | Command::Exp(_) => {
                 unreachable!("handled above")
             }

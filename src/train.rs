@@ -1,5 +1,6 @@
 //! `pbrl train`, `pbrl learner`, `pbrl actor`: the arguments and the wiring of the services.
 
+use std::collections::BTreeSet;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
@@ -7,19 +8,25 @@ use clap::Args;
 use pbrl_actor::cli::WorldArgs;
 use pbrl_actor::runner::{self, ActorConfig, Task, POINT_HORIZON};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
+use pbrl_learner::config::{self, PrefConfig, Setting};
 use pbrl_learner::ppo::PpoConfig;
 use pbrl_learner::run_folder::RunFolder;
 use pbrl_learner::sac::SacConfig;
 use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_teacher::scripted::{ScriptedConfig, TeacherKind};
+use pbrl_teacher::service::{default_id, TeacherConfig};
 
-/// What to learn and how long: shared by `train` and `learner`.
+/// What to learn and how long: shared by `train` and `learner`. The backbones' and
+/// preference learning's settings are flags from their own config structs (flattened).
 #[derive(Args, Clone, Debug)]
 pub struct LearnArgs {
-    /// RL backbone.
+    /// RL backbone: SAC (PEBBLE) or PPO (PrefPPO).
     #[arg(long, value_enum, default_value = "sac")]
     pub algo: Algo,
-    /// Reward to train on: the ground truth or the sketchy task reward alone.
-    #[arg(long, value_enum, default_value = "true")]
+    /// Reward to train on: learnt from preferences and decoupled from the task reward
+    /// (the paper's method), learnt alone (PEBBLE, PrefPPO), or the baselines' ground
+    /// truth and task reward.
+    #[arg(long, value_enum, default_value = "decoupled")]
     pub reward: RewardSource,
     /// Env steps of the run.
     #[arg(long, default_value_t = 1_000_000)]
@@ -30,8 +37,9 @@ pub struct LearnArgs {
     /// Task: the feeding world, or the point task made for tests.
     #[arg(long, value_enum, default_value = "feeding")]
     pub task: Task,
-    /// Network sizes: 256x256 (SAC, batch 256) and 512x512 (PPO), or the authors' 512x512
-    /// everywhere with SAC batch 512 (`paper`).
+    /// Network sizes: 256x256 (SAC, batch 256), 512x512 (PPO) and 3x128 (reward
+    /// ensemble), or the authors' sizes everywhere (`paper`: 512x512, SAC batch 512,
+    /// reward 3x256). Flags given explicitly win over a preset.
     #[arg(long, default_value = "default", value_parser = ["default", "paper"])]
     pub preset: String,
     /// Env steps between rows of the learning curve.
@@ -56,10 +64,12 @@ pub struct LearnArgs {
     #[arg(long, default_value_t = 3)]
     pub keep_checkpoints: usize,
     /// Deterministic mode (use with one actor): each weights version runs exactly its
-    /// share of episodes and the next waits for them, so a run is a function of its seed.
+    /// share of episodes and the next waits for them, and each feedback session waits for
+    /// its answers, so a run is a function of its seed.
     #[arg(long)]
     pub sync: bool,
-    /// Start over even if the run folder holds a run (default: resume it).
+    /// Start over even if the run folder holds a run (default: resume it; the label store
+    /// is kept aside, never deleted).
     #[arg(long)]
     pub fresh: bool,
     /// No progress bar even on a terminal.
@@ -68,62 +78,106 @@ pub struct LearnArgs {
     /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
     #[arg(long)]
     pub run: Option<String>,
-    /// Run folder (config.json, curve.csv); default `runs/<run>`.
+    /// Run folder (config.json, curve.csv, labels.sqlite); default `runs/<run>`.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub sac: SacConfig,
+    #[command(flatten)]
+    pub ppo: PpoConfig,
+    #[command(flatten)]
+    pub pref: PrefConfig,
+    /// The clap ids of the flags given on the command line (presets leave them alone).
+    #[arg(skip)]
+    pub explicit: BTreeSet<String>,
+}
+
+/// The clap ids of the flags a subcommand's matches got from the command line.
+pub fn explicit_flags(m: &clap::ArgMatches) -> BTreeSet<String> {
+    m.ids()
+        .filter(|id| m.value_source(id.as_str()) == Some(clap::parser::ValueSource::CommandLine))
+        .map(|id| id.to_string())
+        .collect()
+}
+
+/// The point task learns in seconds with small networks and short sessions.
+fn point_preset() -> Vec<Setting> {
+    use serde_json::json;
+    let rollout = 32 * POINT_HORIZON;
+    vec![
+        ("sac_hidden", "/sac/hidden", json!([64, 64])),
+        ("sac_batch", "/sac/batch", json!(64)),
+        ("ppo_hidden", "/ppo/hidden", json!([64, 64])),
+        ("ppo_rollout_steps", "/ppo/rollout_steps", json!(rollout)),
+        ("reward_hidden", "/pref/model/hidden", json!([64, 64])),
+        ("unsup_steps", "/pref/unsup_steps", json!(1_200)),
+        ("feedback_interval", "/pref/feedback_interval", json!(1_500)),
+        (
+            "queries_per_session",
+            "/pref/queries_per_session",
+            json!(40),
+        ),
+        ("max_feedback", "/pref/max_feedback", json!(400)),
+        ("candidate_factor", "/pref/candidate_factor", json!(10)),
+        ("lambda0", "/pref/lambda0", json!(1.0)),
+        ("knn_pool", "/pref/knn_pool", json!(2_000)),
+        (
+            "annotation_capacity",
+            "/pref/annotation_capacity",
+            json!(1_000),
+        ),
+    ]
 }
 
 impl LearnArgs {
     pub fn run_id(&self) -> String {
         self.run.clone().unwrap_or_else(|| {
-            format!("{:?}-{:?}-s{}", self.algo, self.reward, self.seed).to_lowercase()
+            format!("{:?}-{}-s{}", self.algo, self.reward.name(), self.seed).to_lowercase()
         })
     }
 
-    fn learner_config(&self, actors: u32, episode_steps: u32) -> LearnerConfig {
+    /// The resolved learner config: the flags, then the presets on what was not given.
+    fn learner_config(
+        &self,
+        actors: u32,
+        episode_steps: u32,
+        world: serde_json::Value,
+    ) -> Result<LearnerConfig> {
         let (obs_dim, act_dim) = self.task.dims();
-        let mut sac = SacConfig {
+        let mut cfg = LearnerConfig::new(&self.run_id(), self.algo, self.reward, obs_dim, act_dim);
+        cfg.total_steps = self.steps;
+        cfg.sac = SacConfig {
             seed: self.seed,
-            ..SacConfig::default()
+            ..self.sac.clone()
         };
-        let mut ppo = PpoConfig {
+        cfg.ppo = PpoConfig {
             seed: self.seed,
-            ..PpoConfig::default()
+            ..self.ppo.clone()
         };
+        cfg.pref = self.pref.clone();
+        cfg.world = world;
+        cfg.log_every = self.log_every;
+        cfg.actors = actors;
+        cfg.episode_steps = episode_steps;
+        cfg.eval_episodes = self.eval_episodes;
+        cfg.eval_sampled = !self.eval_mean_only;
+        cfg.checkpoint_every = self.checkpoint_every;
+        cfg.checkpoint_secs = self.checkpoint_secs;
+        cfg.keep_checkpoints = self.keep_checkpoints;
+        cfg.sync = self.sync;
+        cfg.progress = !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
+        cfg.out = Some(self.out_dir());
+        if self.algo == Algo::Ppo {
+            config::apply_preset(&mut cfg, &config::ppo_preset(), &self.explicit)?;
+        }
         if self.preset == "paper" {
-            sac.hidden = vec![512, 512];
-            sac.batch = 512;
-            ppo.hidden = vec![512, 512];
+            config::apply_preset(&mut cfg, &config::paper_preset(), &self.explicit)?;
         }
         if self.task == Task::Point {
-            // NOTE: the test task learns in seconds with small networks.
-            sac.hidden = vec![64, 64];
-            sac.batch = 64;
-            ppo.hidden = vec![64, 64];
-            ppo.rollout_steps = 32 * POINT_HORIZON as usize;
+            config::apply_preset(&mut cfg, &point_preset(), &self.explicit)?;
         }
-        LearnerConfig {
-            run: self.run_id(),
-            algo: self.algo,
-            reward: self.reward,
-            total_steps: self.steps,
-            obs_dim,
-            act_dim,
-            sac,
-            ppo,
-            publish_every: 50,
-            log_every: self.log_every,
-            actors,
-            episode_steps,
-            eval_episodes: self.eval_episodes,
-            eval_sampled: !self.eval_mean_only,
-            checkpoint_every: self.checkpoint_every,
-            checkpoint_secs: self.checkpoint_secs,
-            keep_checkpoints: self.keep_checkpoints,
-            sync: self.sync,
-            progress: !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr()),
-            out: Some(self.out_dir()),
-        }
+        cfg.validate()?;
+        Ok(cfg)
     }
 
     /// The run folder.
@@ -138,7 +192,7 @@ impl LearnArgs {
     fn prepare(&self) -> Result<bool> {
         let folder = RunFolder::new(self.out_dir());
         if self.fresh {
-            folder.clear()?;
+            folder.clear_fresh()?;
             return Ok(true);
         }
         if let Some(steps) = folder.finished_steps()? {
@@ -166,9 +220,83 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 2)]
     pub actors: u32,
     #[command(flatten)]
+    pub teacher: TeacherArgs,
+    /// `train`: no teacher in this process (one joins over Zenoh: `pbrl teacher`).
+    #[arg(long)]
+    pub external_teacher: bool,
+    #[command(flatten)]
     pub world: WorldArgs,
     #[command(flatten)]
     pub connect: ConnectArgs,
+}
+
+/// A scripted teacher (paper Table I), in `train` (in-process) and `teacher`.
+#[derive(Args, Clone, Debug)]
+pub struct TeacherArgs {
+    /// The scripted teacher answering preference queries.
+    #[arg(long = "teacher", value_enum, default_value = "oracle")]
+    pub kind: TeacherKind,
+    /// Lowest possible ground-truth return (the skip and equal thresholds are fractions of
+    /// the mean return above it); default -350 on feeding (the authors'), -100 on the
+    /// point task.
+    #[arg(long)]
+    pub teacher_r_min: Option<f64>,
+    /// The teacher's id on the network (default `<kind>-<seed>`).
+    #[arg(long)]
+    pub teacher_id: Option<String>,
+}
+
+impl TeacherArgs {
+    fn configs(&self, run: &str, task: Task, seed: u64) -> (TeacherConfig, ScriptedConfig) {
+        let mut scripted = ScriptedConfig::of(self.kind, seed);
+        scripted.r_min = self.teacher_r_min.unwrap_or(match task {
+            Task::Feeding => -350.0,
+            Task::Point => -100.0,
+        });
+        let id = self
+            .teacher_id
+            .clone()
+            .unwrap_or_else(|| default_id(self.kind, seed));
+        (TeacherConfig::new(run, &id), scripted)
+    }
+}
+
+/// `pbrl teacher`: a scripted teacher, joining a Zenoh network.
+#[derive(Args, Debug)]
+pub struct TeacherProcessArgs {
+    /// Run id, as the learner's.
+    #[arg(long)]
+    pub run: String,
+    #[command(flatten)]
+    pub teacher: TeacherArgs,
+    #[arg(long, value_enum, default_value = "feeding")]
+    pub task: Task,
+    /// Seed of the teacher's random choices (noisy, mistake).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+}
+
+pub async fn teacher(args: TeacherProcessArgs) -> Result<()> {
+    let (cfg, scripted) = args.teacher.configs(&args.run, args.task, args.seed);
+    let session = args.connect.open().await?;
+    let s = pbrl_teacher::service::run(cfg, scripted, session, stop_signal()).await?;
+    println!(
+        "teacher done: {} queries judged ({:?}), {} answers sent again, {} acknowledged",
+        s.judged, s.by_kind, s.resent, s.acknowledged
+    );
+    Ok(())
+}
+
+/// The world the actors simulate, as the run folder records it.
+fn world_json(task: Task, world: &pbrl_actor::WorldConfig) -> Result<serde_json::Value> {
+    Ok(match task {
+        Task::Feeding => {
+            serde_json::json!({ "task": "feeding", "config": serde_json::to_value(world)? })
+        }
+        Task::Point => serde_json::json!({ "task": "point" }),
+    })
 }
 
 /// `pbrl actor`: one actor, joining a Zenoh network.
@@ -275,9 +403,11 @@ pub async fn train(args: TrainArgs) -> Result<()> {
 /// in one process can block one another (`common::bus` tells how).
 async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<PathBuf>)> {
     let world = args.world.config()?;
-    let cfg = args
-        .learn
-        .learner_config(args.actors, episode_steps(args.learn.task, &world));
+    let cfg = args.learn.learner_config(
+        args.actors,
+        episode_steps(args.learn.task, &world),
+        world_json(args.learn.task, &world)?,
+    )?;
     // The embedded router on loopback, unless told to join an existing network.
     let (endpoint, session) = if args.connect.connect.is_empty() {
         let listen = match args.connect.listen.first() {
@@ -317,9 +447,31 @@ async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<P
             },
         )));
     }
+    // The scripted teacher, on the same session, when the reward is learnt.
+    let teacher = (cfg.reward.learnt() && !args.external_teacher).then(|| {
+        let (tcfg, scripted) = args
+            .teacher
+            .configs(&cfg.run, args.learn.task, args.learn.seed);
+        let mut rx = rx.clone();
+        tokio::spawn(pbrl_teacher::service::run(
+            tcfg,
+            scripted,
+            session.clone(),
+            async move {
+                let _ = rx.wait_for(|stop| *stop).await;
+            },
+        ))
+    });
     let out = cfg.out.clone();
     let summary = service::run(cfg, session, stop_signal()).await?;
     let _ = tx.send(true);
+    if let Some(t) = teacher {
+        match t.await {
+            Ok(Err(e)) => tracing::warn!(error = %e, "the teacher failed"),
+            Err(e) => tracing::warn!(error = %e, "the teacher task died"),
+            Ok(Ok(_)) => {}
+        }
+    }
     for a in actors {
         match a.await {
             Ok(Err(e)) => tracing::warn!(error = %e, "an actor failed"),
@@ -335,9 +487,11 @@ pub async fn learner(args: TrainArgs) -> Result<()> {
         return Ok(());
     }
     let world = args.world.config()?;
-    let cfg = args
-        .learn
-        .learner_config(args.actors, episode_steps(args.learn.task, &world));
+    let cfg = args.learn.learner_config(
+        args.actors,
+        episode_steps(args.learn.task, &world),
+        world_json(args.learn.task, &world)?,
+    )?;
     let session = args.connect.open().await?;
     let summary = service::run(cfg, session, stop_signal()).await?;
     println!(
@@ -428,7 +582,11 @@ fn bench_train(steps: u64, checkpoint_every: u64, only: Option<String>) -> Resul
                 format!("--run=bench-{algo}-{actors}"),
                 format!("--out={}", out.display()),
             ];
-            let TrainLine { mut args } = <TrainLine as clap::Parser>::try_parse_from(line)?;
+            let matches =
+                <TrainLine as clap::CommandFactory>::command().try_get_matches_from(line)?;
+            let TrainLine { mut args } =
+                <TrainLine as clap::FromArgMatches>::from_arg_matches(&matches)?;
+            args.learn.explicit = explicit_flags(&matches);
             args.learn.quiet = true;
             let start = std::time::Instant::now();
             let (summary, _) = runtime.block_on(train_in_process(args))?;
@@ -459,7 +617,7 @@ pub fn bench(cmd: BenchCommand) -> Result<()> {
         } => {
             let dir =
                 std::env::temp_dir().join(format!("pbrl-bench-checkpoint-{}", std::process::id()));
-            let c = service::bench_checkpoint(&dir, transitions, increment);
+            let c = pbrl_learner::checkpoint::bench(&dir, transitions, increment);
             let _ = std::fs::remove_dir_all(&dir);
             let c = c?;
             let mb = |b: u64| b as f64 / 1e6;

@@ -48,9 +48,9 @@ fn sac_learns_to_reach_the_point() {
             point_episode(episode, HORIZON, |o| sac.act_stochastic(o).unwrap())
         };
         episode += 1;
-        sac.observe(&t, |r| r.truth);
+        sac.observe(&t);
         for _ in 0..sac.updates_due() {
-            sac.update().unwrap();
+            sac.update(|b| Ok(b.truth.clone())).unwrap();
         }
     }
     let learnt = evaluate(|o| sac.act_deterministic(o).unwrap());
@@ -96,7 +96,11 @@ fn ppo_learns_to_reach_the_point() {
                 })
             })
             .collect();
-        ppo.train(&rollout, |r| r.truth, total).unwrap();
+        let rewards: Vec<Vec<f32>> = rollout
+            .iter()
+            .map(|t| t.rewards.iter().map(|r| r.truth).collect())
+            .collect();
+        ppo.train(&rollout, &rewards, total).unwrap();
     }
     let learnt = evaluate(|o| ppo.act_deterministic(o).unwrap());
     eprintln!(

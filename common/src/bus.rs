@@ -258,6 +258,57 @@ pub mod caps {
     pub const EVAL_REQUESTS: usize = 256;
     /// Stops.
     pub const STOPS: usize = 16;
+    /// Queries at a teacher: a session's worth, asked again while unanswered.
+    pub const QUERIES: usize = 16_384;
+    /// Answers at the learner: one per open query, and repeats.
+    pub const ANSWERS: usize = 16_384;
+    /// Acknowledgements at a teacher.
+    pub const ANSWER_ACKS: usize = 4096;
+}
+
+impl Inbox<Box<wire::Query>> {
+    /// A teacher's subscription to the learner's queries.
+    pub async fn queries(session: &Session, keys: &Keys) -> Result<Self> {
+        Self::new(session, keys, keys.queries(), caps::QUERIES, |b| match b {
+            Body::Query(q) => Some(q),
+            _ => None,
+        })
+        .await
+    }
+}
+
+impl Inbox<wire::Answer> {
+    /// The learner's subscription to every teacher's answers.
+    pub async fn answers(session: &Session, keys: &Keys) -> Result<Self> {
+        Self::new(
+            session,
+            keys,
+            keys.all_answers(),
+            caps::ANSWERS,
+            |b| match b {
+                Body::Answer(a) => Some(a),
+                _ => None,
+            },
+        )
+        .await
+    }
+}
+
+impl Inbox<wire::AnswerAck> {
+    /// Teacher `teacher`'s acknowledgements from the learner.
+    pub async fn answer_acks(session: &Session, keys: &Keys, teacher: &str) -> Result<Self> {
+        Self::new(
+            session,
+            keys,
+            keys.answer_ack(teacher),
+            caps::ANSWER_ACKS,
+            |b| match b {
+                Body::AnswerAck(a) => Some(a),
+                _ => None,
+            },
+        )
+        .await
+    }
 }
 
 impl Inbox<TrajectoryMsg> {

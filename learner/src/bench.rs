@@ -55,16 +55,16 @@ pub fn sac_step_ms(hidden: usize, batch: usize, steps: usize, reps: usize) -> Re
     let mut sac = Sac::new(cfg, OBS, ACT)?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     for s in 0..50 {
-        sac.observe(&synthetic(&mut rng, s, 200), |r| r.truth);
+        sac.observe(&synthetic(&mut rng, s, 200));
     }
     for _ in 0..3 {
-        sac.update()?;
+        sac.update(|b| Ok(b.truth.clone()))?;
     }
     let mut times = Vec::new();
     for _ in 0..reps {
         let t = Instant::now();
         for _ in 0..steps {
-            sac.update()?;
+            sac.update(|b| Ok(b.truth.clone()))?;
         }
         times.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
     }
@@ -86,8 +86,12 @@ pub fn ppo_update_ms(hidden: usize, minibatch: usize, rollout: usize) -> Result<
     let data: Vec<Trajectory> = (0..(rollout / 200) as u64)
         .map(|s| synthetic(&mut rng, s, 200))
         .collect();
-    ppo.train(&data, |r| r.truth, u64::MAX)?;
+    let rewards: Vec<Vec<f32>> = data
+        .iter()
+        .map(|t| t.rewards.iter().map(|r| r.truth).collect())
+        .collect();
+    ppo.train(&data, &rewards, u64::MAX)?;
     let t = Instant::now();
-    let stats = ppo.train(&data, |r| r.truth, u64::MAX)?;
+    let stats = ppo.train(&data, &rewards, u64::MAX)?;
     Ok(t.elapsed().as_secs_f64() * 1e3 / stats.minibatch_updates.max(1) as f64)
 }

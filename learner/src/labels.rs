@@ -527,6 +527,17 @@ impl LabelStore {
         Ok(rows)
     }
 
+    /// The newest feedback session that asked a query (0: none).
+    pub fn last_session(&self) -> Result<u64> {
+        let n: i64 = self
+            .conn
+            .query_row("SELECT coalesce(max(session), 0) FROM queries", [], |r| {
+                r.get(0)
+            })
+            .with_context(|| format!("reading the last session of {}", self.path.display()))?;
+        Ok(uint(n))
+    }
+
     /// The queries by state.
     pub fn counts(&self) -> Result<Counts> {
         let (asked, first, second, equal, skipped, expired, open, late) = self

@@ -10,7 +10,7 @@
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor};
 use pbrl_common::nets::{GaussianPolicy, Owned, ValueNet};
-use pbrl_common::{RunningNorm, StepRewards, Trajectory};
+use pbrl_common::{RunningNorm, Trajectory};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -19,28 +19,56 @@ use serde::{Deserialize, Serialize};
 use crate::optim::{clip_grad_norm, Adam, AdamState};
 use crate::state::RngState;
 
-/// PPO's settings (defaults from `shared/method.md`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// PPO's settings (defaults from `shared/method.md`). Each is a flag of `pbrl train`
+/// (`--ppo-...`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
 pub struct PpoConfig {
-    /// Hidden layer sizes of the policy and of the value network (authors: 512x512).
+    /// PPO: hidden layer sizes of the policy and of the value network (authors: 512x512).
+    #[arg(id = "ppo_hidden", long = "ppo-hidden", value_delimiter = ',', default_values_t = [512, 512])]
     pub hidden: Vec<usize>,
-    /// Env steps per rollout (16 envs x 200 steps).
+    /// PPO: env steps per rollout (16 envs x 200 steps).
+    #[arg(
+        id = "ppo_rollout_steps",
+        long = "ppo-rollout-steps",
+        default_value_t = 3200
+    )]
     pub rollout_steps: usize,
-    /// Passes over a rollout.
+    /// PPO: passes over a rollout.
+    #[arg(id = "ppo_epochs", long = "ppo-epochs", default_value_t = 10)]
     pub epochs: usize,
+    /// PPO: minibatch size.
+    #[arg(id = "ppo_minibatch", long = "ppo-minibatch", default_value_t = 256)]
     pub minibatch: usize,
+    /// PPO: discount.
+    #[arg(id = "ppo_gamma", long = "ppo-gamma", default_value_t = 0.99)]
     pub gamma: f64,
+    /// PPO: GAE lambda.
+    #[arg(id = "ppo_gae_lambda", long = "ppo-gae-lambda", default_value_t = 0.98)]
     pub gae_lambda: f64,
-    /// Clip range at the start; decays linearly to 0 over the run.
+    /// PPO: clip range at the start; decays linearly to 0 over the run.
+    #[arg(id = "ppo_clip", long = "ppo-clip", default_value_t = 0.2)]
     pub clip: f64,
-    /// Learning rate at the start; decays linearly to 0 over the run.
+    /// PPO: learning rate at the start; decays linearly to 0 over the run.
+    #[arg(id = "ppo_lr", long = "ppo-lr", default_value_t = 3e-4)]
     pub lr: f64,
+    /// PPO: value loss coefficient.
+    #[arg(id = "ppo_value_coef", long = "ppo-value-coef", default_value_t = 0.5)]
     pub value_coef: f64,
+    /// PPO: gradient norm clip.
+    #[arg(
+        id = "ppo_max_grad_norm",
+        long = "ppo-max-grad-norm",
+        default_value_t = 0.5
+    )]
     pub max_grad_norm: f64,
-    /// Stop a rollout's epochs once the approximate KL exceeds 1.5 x this.
+    /// PPO: stop a rollout's epochs once the approximate KL exceeds 1.5 x this.
+    #[arg(id = "ppo_target_kl", long = "ppo-target-kl", default_value_t = 0.03)]
     pub target_kl: f64,
-    /// Clip of normalised observations.
+    /// PPO: clip of normalised observations.
+    #[arg(id = "ppo_obs_clip", long = "ppo-obs-clip", default_value_t = 10.0)]
     pub obs_clip: f64,
+    /// Seed (the run's `--seed`).
+    #[arg(skip)]
     pub seed: u64,
 }
 
@@ -219,6 +247,14 @@ impl Ppo {
         Ok(())
     }
 
+    /// A new value network and its optimiser (PrefPPO, after the unsupervised pretraining).
+    pub fn reset_value(&mut self) -> Result<()> {
+        let (obs_dim, h) = (self.obs_dim, self.cfg.hidden.clone());
+        self.value = Owned::build(&mut self.rng, |vb| ValueNet::new(vb, obs_dim, &h))?;
+        self.v_opt = Adam::for_varmap(&self.value.varmap, self.v_opt.lr)?;
+        Ok(())
+    }
+
     pub fn new(cfg: PpoConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let h = cfg.hidden.clone();
@@ -285,17 +321,26 @@ impl Ppo {
         })
     }
 
-    /// Train on one rollout. `total_steps` is the run's budget (for the linear decays).
+    /// Train on one rollout, `rewards[i]` being the per-step reward trained on for
+    /// trajectory `i`. `total_steps` is the run's budget (for the linear decays).
     pub fn train(
         &mut self,
         rollout: &[Trajectory],
-        reward: impl Fn(&StepRewards) -> f32,
+        rewards: &[Vec<f32>],
         total_steps: u64,
     ) -> Result<PpoStats> {
+        if rewards.len() != rollout.len()
+            || rollout
+                .iter()
+                .zip(rewards)
+                .any(|(t, r)| t.steps() != r.len())
+        {
+            candle_core::bail!("PPO: the rewards do not match the rollout's trajectories");
+        }
         // 1. Targets: values, GAE, old log-probabilities, all with the acting weights.
         let (mut obs, mut act, mut old_logp, mut adv, mut ret) =
             (vec![], vec![], vec![], vec![], vec![]);
-        for t in rollout {
+        for (t, r) in rollout.iter().zip(rewards) {
             let o = self.normalised(t)?;
             let v = self
                 .value
@@ -303,9 +348,8 @@ impl Ppo {
                 .forward(&o)?
                 .flatten_all()?
                 .to_vec1::<f32>()?;
-            let r: Vec<f32> = t.rewards.iter().map(&reward).collect();
             let (a, g) = gae(
-                &r,
+                r,
                 &v,
                 t.outcome.terminated,
                 self.cfg.gamma,

@@ -8,6 +8,10 @@
 //! DIR/finished.json                  written once the run reached its total
 //! DIR/checkpoints/<env steps>/       networks (*.safetensors), state.bin, manifest.json last
 //! DIR/replay/<start>-<end>.bin       SAC's transitions, one segment appended per checkpoint
+//! DIR/labels.sqlite                  the label store (preference learning): every query and
+//!                                    answer, committed as it happens (`labels`); kept when
+//!                                    a run starts over, moved aside by `--fresh`, never
+//!                                    deleted
 //! ```
 //!
 //! Every file is written to a temporary name, synced and renamed; a checkpoint directory is
@@ -103,6 +107,11 @@ impl RunFolder {
         self.root.join("replay")
     }
 
+    /// The label store (SQLite).
+    pub fn labels(&self) -> PathBuf {
+        self.root.join("labels.sqlite")
+    }
+
     /// Whether the folder holds a run (its config).
     pub fn holds_run(&self) -> bool {
         self.config().exists()
@@ -116,7 +125,8 @@ impl RunFolder {
         Ok(())
     }
 
-    /// Remove everything a run wrote (for `--fresh`).
+    /// Remove everything a run wrote but its label store (a run started over keeps its
+    /// labels: D alone can train a reward model).
     pub fn clear(&self) -> Result<()> {
         for f in [
             self.config(),
@@ -132,6 +142,32 @@ impl RunFolder {
             if d.exists() {
                 std::fs::remove_dir_all(&d).with_context(|| format!("removing {}", d.display()))?;
             }
+        }
+        Ok(())
+    }
+
+    /// Start over entirely (`--fresh`): [`RunFolder::clear`], and the label store moved
+    /// aside (labels are people's time: never deleted).
+    pub fn clear_fresh(&self) -> Result<()> {
+        self.clear()?;
+        let labels = self.labels();
+        if labels.exists() {
+            let ms = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_millis());
+            for suffix in ["", "-wal", "-shm"] {
+                let from = PathBuf::from(format!("{}{suffix}", labels.display()));
+                let to = PathBuf::from(format!("{}.{ms}.old{suffix}", labels.display()));
+                if from.exists() {
+                    std::fs::rename(&from, &to).with_context(|| {
+                        format!("moving {} to {}", from.display(), to.display())
+                    })?;
+                }
+            }
+            tracing::warn!(
+                moved_to = %format!("{}.{ms}.old", labels.display()),
+                "starting over: the label store is kept aside"
+            );
         }
         Ok(())
     }

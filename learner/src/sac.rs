@@ -9,7 +9,7 @@ use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::VarMap;
 use pbrl_common::nets::{export, GaussianPolicy, Owned, TwinQ};
-use pbrl_common::{StepRewards, Trajectory};
+use pbrl_common::Trajectory;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -19,30 +19,54 @@ use crate::optim::{Adam, AdamState};
 use crate::state::RngState;
 
 /// SAC's settings (defaults from `shared/method.md`, at the 256x256 size of SB3 and
-/// CleanRL; the authors' 512x512 / batch 512 is the `paper` preset).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// CleanRL; the authors' 512x512 / batch 512 is the `paper` preset). Each is a flag of
+/// `pbrl train` (`--sac-...`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
 pub struct SacConfig {
-    /// Hidden layer sizes of the actor and of each critic.
+    /// SAC: hidden layer sizes of the actor and of each critic.
+    #[arg(id = "sac_hidden", long = "sac-hidden", value_delimiter = ',', default_values_t = [256, 256])]
     pub hidden: Vec<usize>,
-    /// Minibatch size of a gradient step.
+    /// SAC: minibatch size of a gradient step.
+    #[arg(id = "sac_batch", long = "sac-batch", default_value_t = 256)]
     pub batch: usize,
-    /// Discount.
+    /// SAC: discount.
+    #[arg(id = "sac_gamma", long = "sac-gamma", default_value_t = 0.99)]
     pub gamma: f64,
-    /// Polyak rate of the target critics.
+    /// SAC: Polyak rate of the target critics.
+    #[arg(id = "sac_tau", long = "sac-tau", default_value_t = 0.005)]
     pub tau: f64,
-    /// Adam learning rate of actor, critics and temperature.
+    /// SAC: Adam learning rate of actor, critics and temperature.
+    #[arg(id = "sac_lr", long = "sac-lr", default_value_t = 3e-4)]
     pub lr: f64,
-    /// Initial entropy temperature.
+    /// SAC: initial entropy temperature.
+    #[arg(id = "sac_init_alpha", long = "sac-init-alpha", default_value_t = 0.1)]
     pub init_alpha: f64,
-    /// Target entropy (default: -action dimension).
+    /// SAC: target entropy (default: minus the action dimension).
+    #[arg(id = "sac_target_entropy", long = "sac-target-entropy")]
     pub target_entropy: Option<f64>,
-    /// Replay buffer capacity (transitions).
+    /// SAC: replay buffer capacity (transitions).
+    #[arg(
+        id = "sac_replay_capacity",
+        long = "sac-replay-capacity",
+        default_value_t = 1_000_000
+    )]
     pub replay_capacity: usize,
-    /// Env steps of uniformly random actions before learning starts.
+    /// SAC: env steps of uniformly random actions before learning starts.
+    #[arg(
+        id = "sac_random_steps",
+        long = "sac-random-steps",
+        default_value_t = 600
+    )]
     pub random_steps: u64,
-    /// One gradient step per this many env steps (the update-to-data ratio's inverse).
+    /// SAC: one gradient step per this many env steps (the update-to-data ratio's inverse).
+    #[arg(
+        id = "sac_update_every",
+        long = "sac-update-every",
+        default_value_t = 10
+    )]
     pub update_every: u64,
-    /// Seed of initialisation, minibatches and sampling noise.
+    /// Seed of initialisation, minibatches and sampling noise (the run's `--seed`).
+    #[arg(skip)]
     pub seed: u64,
 }
 
@@ -87,7 +111,10 @@ pub fn temperature_loss(log_alpha: &Tensor, logp: &Tensor, target_entropy: f64) 
     (gap.broadcast_mul(log_alpha)?.mean_all()?).neg()
 }
 
-/// Transitions, flat f32 rows, overwritten oldest first once full.
+/// Transitions, flat f32 rows, overwritten oldest first once full. A row holds the task
+/// reward r_task and (for diagnostics and the `truth` baseline) the ground truth, never the
+/// reward trained on: that is formed per minibatch ([`Batch`]), so no transition is trained
+/// on with a stale reward model.
 pub struct Replay {
     obs_dim: usize,
     act_dim: usize,
@@ -98,9 +125,21 @@ pub struct Replay {
     pub total: u64,
     obs: Vec<f32>,
     act: Vec<f32>,
-    rew: Vec<f32>,
+    task: Vec<f32>,
+    truth: Vec<f32>,
     next_obs: Vec<f32>,
     done: Vec<f32>,
+}
+
+/// A minibatch as drawn from the replay buffer: `[n, obs]`, `[n, act]`, r_task `[n, 1]`,
+/// the ground truth `[n, 1]`, `[n, obs]`, done `[n, 1]`.
+pub struct Batch {
+    pub obs: Tensor,
+    pub act: Tensor,
+    pub task: Tensor,
+    pub truth: Tensor,
+    pub next_obs: Tensor,
+    pub done: Tensor,
 }
 
 impl Replay {
@@ -114,7 +153,8 @@ impl Replay {
             total: 0,
             obs: Vec::new(),
             act: Vec::new(),
-            rew: Vec::new(),
+            task: Vec::new(),
+            truth: Vec::new(),
             next_obs: Vec::new(),
             done: Vec::new(),
         }
@@ -128,19 +168,29 @@ impl Replay {
         self.len == 0
     }
 
-    pub fn push(&mut self, obs: &[f32], act: &[f32], rew: f32, next_obs: &[f32], done: bool) {
+    /// Store one transition with its rewards `[r_task, truth]`.
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        act: &[f32],
+        rewards: [f32; 2],
+        next_obs: &[f32],
+        done: bool,
+    ) {
         let (o, a, i) = (self.obs_dim, self.act_dim, self.next);
         if self.len < self.capacity {
             self.obs.extend_from_slice(obs);
             self.act.extend_from_slice(act);
-            self.rew.push(rew);
+            self.task.push(rewards[0]);
+            self.truth.push(rewards[1]);
             self.next_obs.extend_from_slice(next_obs);
             self.done.push(done as u8 as f32);
             self.len += 1;
         } else {
             self.obs[i * o..(i + 1) * o].copy_from_slice(obs);
             self.act[i * a..(i + 1) * a].copy_from_slice(act);
-            self.rew[i] = rew;
+            self.task[i] = rewards[0];
+            self.truth[i] = rewards[1];
             self.next_obs[i * o..(i + 1) * o].copy_from_slice(next_obs);
             self.done[i] = done as u8 as f32;
         }
@@ -148,9 +198,9 @@ impl Replay {
         self.total += 1;
     }
 
-    /// Numbers per transition in [`Replay::rows`]: obs, act, reward, next obs, done.
+    /// Numbers per transition in [`Replay::rows`]: obs, act, r_task, truth, next obs, done.
     pub fn row_len(&self) -> usize {
-        2 * self.obs_dim + self.act_dim + 2
+        2 * self.obs_dim + self.act_dim + 3
     }
 
     /// Transitions `start..end` (counted from the start of the run; all still held), one
@@ -167,7 +217,8 @@ impl Replay {
             let i = (n % self.capacity as u64) as usize;
             out.extend_from_slice(&self.obs[i * o..(i + 1) * o]);
             out.extend_from_slice(&self.act[i * a..(i + 1) * a]);
-            out.push(self.rew[i]);
+            out.push(self.task[i]);
+            out.push(self.truth[i]);
             out.extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
             out.push(self.done[i]);
         }
@@ -196,7 +247,8 @@ impl Replay {
         let (o, a, c) = (self.obs_dim, self.act_dim, self.capacity);
         self.obs = vec![0.0; c * o];
         self.act = vec![0.0; c * a];
-        self.rew = vec![0.0; c];
+        self.task = vec![0.0; c];
+        self.truth = vec![0.0; c];
         self.next_obs = vec![0.0; c * o];
         self.done = vec![0.0; c];
         self.len = c;
@@ -206,8 +258,8 @@ impl Replay {
         for r in rows.chunks_exact(self.row_len()).skip(skip) {
             let (obs, rest) = r.split_at(o);
             let (act, rest) = rest.split_at(a);
-            let (next_obs, done) = rest[1..].split_at(o);
-            self.push(obs, act, rest[0], next_obs, done[0] > 0.5);
+            let (next_obs, done) = rest[2..].split_at(o);
+            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
         }
         Ok(())
     }
@@ -218,13 +270,13 @@ impl Replay {
         for r in rows.chunks_exact(self.row_len()) {
             let (obs, rest) = r.split_at(o);
             let (act, rest) = rest.split_at(a);
-            let (next_obs, done) = rest[1..].split_at(o);
-            self.push(obs, act, rest[0], next_obs, done[0] > 0.5);
+            let (next_obs, done) = rest[2..].split_at(o);
+            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
         }
     }
 
-    /// A uniform minibatch: (obs, act, rew [n,1], next_obs, done [n,1]).
-    fn sample(&self, rng: &mut impl Rng, n: usize) -> Result<[Tensor; 5]> {
+    /// A uniform minibatch.
+    fn sample(&self, rng: &mut impl Rng, n: usize) -> Result<Batch> {
         let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..self.len)).collect();
         let rows = |src: &[f32], w: usize| -> Result<Tensor> {
             let mut out = Vec::with_capacity(n * w);
@@ -233,13 +285,14 @@ impl Replay {
             }
             Tensor::from_vec(out, (n, w), &Device::Cpu)
         };
-        Ok([
-            rows(&self.obs, self.obs_dim)?,
-            rows(&self.act, self.act_dim)?,
-            rows(&self.rew, 1)?,
-            rows(&self.next_obs, self.obs_dim)?,
-            rows(&self.done, 1)?,
-        ])
+        Ok(Batch {
+            obs: rows(&self.obs, self.obs_dim)?,
+            act: rows(&self.act, self.act_dim)?,
+            task: rows(&self.task, 1)?,
+            truth: rows(&self.truth, 1)?,
+            next_obs: rows(&self.next_obs, self.obs_dim)?,
+            done: rows(&self.done, 1)?,
+        })
     }
 }
 
@@ -357,21 +410,34 @@ impl Sac {
         Ok(self.log_alpha.as_tensor().exp()?.to_vec1::<f32>()?[0] as f64)
     }
 
-    /// Store every transition of `t`, rewarded by `reward` (the ground truth, the task
-    /// reward or a learnt one).
-    pub fn observe(&mut self, t: &Trajectory, reward: impl Fn(&StepRewards) -> f32) {
+    /// Store every transition of `t` with its task reward and ground truth (the reward
+    /// trained on is formed when a minibatch is drawn).
+    pub fn observe(&mut self, t: &Trajectory) {
         let last = t.steps().saturating_sub(1);
         for k in 0..t.steps() {
             let done = k == last && t.outcome.terminated;
+            let r = &t.rewards[k];
             self.replay.push(
                 t.obs_at(k),
                 t.action_at(k),
-                reward(&t.rewards[k]),
+                [r.task, r.truth],
                 t.obs_at(k + 1),
                 done,
             );
         }
         self.env_steps += t.steps() as u64;
+    }
+
+    /// New critics, target critics and critic optimiser (PEBBLE, after the unsupervised
+    /// pretraining: the values learnt for the entropy bonus mean nothing for r_hat).
+    pub fn reset_critics(&mut self) -> Result<()> {
+        let (obs_dim, h) = (self.replay.obs_dim, self.cfg.hidden.clone());
+        let act_dim = self.act_dim;
+        self.critic = Owned::build(&mut self.rng, |vb| TwinQ::new(vb, obs_dim, act_dim, &h))?;
+        self.target = Owned::build(&mut self.rng, |vb| TwinQ::new(vb, obs_dim, act_dim, &h))?;
+        copy_vars(&self.critic.varmap, &self.target.varmap)?;
+        self.q_opt = Adam::for_varmap(&self.critic.varmap, self.cfg.lr)?;
+        Ok(())
     }
 
     /// Gradient steps owed: one per `update_every` env steps once the random steps are
@@ -450,9 +516,18 @@ impl Sac {
     }
 
     /// One gradient step on critics, actor and temperature, then the target update.
-    pub fn update(&mut self) -> Result<SacLosses> {
+    /// `reward` forms the reward of the drawn minibatch (`[n, 1]`) from what its rows hold.
+    pub fn update(&mut self, reward: impl FnOnce(&Batch) -> Result<Tensor>) -> Result<SacLosses> {
         let n = self.cfg.batch;
-        let [obs, act, rew, next_obs, done] = self.replay.sample(&mut self.rng, n)?;
+        let batch = self.replay.sample(&mut self.rng, n)?;
+        let rew = reward(&batch)?;
+        let Batch {
+            obs,
+            act,
+            next_obs,
+            done,
+            ..
+        } = batch;
         let alpha = self.alpha()?;
 
         // Targets, without gradients.
@@ -572,18 +647,25 @@ mod tests {
         let mut a = Replay::new(2, 1, 5);
         for k in 0..13 {
             let x = k as f32;
-            a.push(&[x, -x], &[0.5 * x], x * 10.0, &[x + 1.0, 0.0], k % 4 == 0);
+            a.push(
+                &[x, -x],
+                &[0.5 * x],
+                [x * 10.0, -x],
+                &[x + 1.0, 0.0],
+                k % 4 == 0,
+            );
         }
         // The last 5 transitions (8..13), the ring wrapped twice.
         let mut b = Replay::new(2, 1, 5);
         b.restore(8, &a.rows(8, 13)).unwrap();
         assert_eq!((b.len, b.next, b.total), (a.len, a.next, a.total));
-        assert_eq!((&b.obs, &b.act, &b.rew), (&a.obs, &a.act, &a.rew));
+        assert_eq!((&b.obs, &b.act, &b.task), (&a.obs, &a.act, &a.task));
+        assert_eq!(&b.truth, &a.truth);
         assert_eq!((&b.next_obs, &b.done), (&a.next_obs, &a.done));
         // Not full yet: rows from the start.
         let mut d = Replay::new(2, 1, 50);
         for k in 0..13 {
-            d.push(&[k as f32, 1.0], &[0.0], 1.0, &[0.0, 2.0], false);
+            d.push(&[k as f32, 1.0], &[0.0], [1.0, 2.0], &[0.0, 2.0], false);
         }
         let mut c = Replay::new(2, 1, 50);
         c.restore(0, &d.rows(0, 13)).unwrap();
@@ -611,16 +693,16 @@ mod tests {
             act_dim: 1,
             obs: vec![0.1; 2 * 11],
             actions: vec![0.5; 10],
-            rewards: vec![StepRewards::default(); 10],
+            rewards: vec![pbrl_common::StepRewards::default(); 10],
             ..Trajectory::default()
         };
-        sac.observe(&t, |r| r.truth);
+        sac.observe(&t);
         assert_eq!(sac.updates_due(), 0, "still in the random steps");
-        sac.observe(&t, |r| r.truth);
-        sac.observe(&t, |r| r.truth);
+        sac.observe(&t);
+        sac.observe(&t);
         assert_eq!(sac.env_steps, 30);
         assert_eq!(sac.updates_due(), 3);
-        sac.update().unwrap();
+        sac.update(|b| Ok(b.truth.clone())).unwrap();
         assert_eq!(sac.updates_due(), 2);
     }
 

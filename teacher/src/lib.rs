@@ -1,4 +1,7 @@
 //! The teachers that answer preference queries. [`scripted`]: the six B-Pref scripted
-//! teachers of paper Table I, which judge from the ground-truth reward.
+//! teachers of paper Table I, which judge from the ground-truth reward. [`service`]: the
+//! teacher service that answers the learner's queries over Zenoh (`pbrl teacher`, or
+//! in-process under `pbrl train`).
 
 pub mod scripted;
+pub mod service;

@@ -115,39 +115,26 @@ pub fn bad_payloads(
 /// no run folder).
 pub fn point_learner(run: &str, algo: Algo, total: u64) -> LearnerConfig {
     let (obs_dim, act_dim) = Task::Point.dims();
-    LearnerConfig {
-        run: run.into(),
-        algo,
-        reward: RewardSource::True,
-        total_steps: total,
-        obs_dim,
-        act_dim,
-        sac: SacConfig {
-            hidden: vec![32, 32],
-            batch: 32,
-            random_steps: 300,
-            update_every: 2,
-            ..SacConfig::default()
-        },
-        ppo: PpoConfig {
-            hidden: vec![32, 32],
-            rollout_steps: 300,
-            minibatch: 64,
-            ..PpoConfig::default()
-        },
-        publish_every: 20,
-        log_every: 1000,
-        actors: 2,
-        episode_steps: pbrl_actor::runner::POINT_HORIZON,
-        eval_episodes: 0,
-        eval_sampled: false,
-        checkpoint_every: 0,
-        checkpoint_secs: 0,
-        keep_checkpoints: 2,
-        sync: false,
-        out: None,
-        progress: false,
-    }
+    let mut cfg = LearnerConfig::new(run, algo, RewardSource::Truth, obs_dim, act_dim);
+    cfg.total_steps = total;
+    cfg.sac = SacConfig {
+        hidden: vec![32, 32],
+        batch: 32,
+        random_steps: 300,
+        update_every: 2,
+        ..SacConfig::default()
+    };
+    cfg.ppo = PpoConfig {
+        hidden: vec![32, 32],
+        rollout_steps: 300,
+        minibatch: 64,
+        ..PpoConfig::default()
+    };
+    cfg.publish_every = 20;
+    cfg.log_every = 1000;
+    cfg.actors = 2;
+    cfg.episode_steps = pbrl_actor::runner::POINT_HORIZON;
+    cfg
 }
 
 /// A 200-step trajectory of a 2-dimensional task (about 20 KB on the wire).

@@ -1,0 +1,227 @@
+//! The RL backbone behind one enum: SAC (PEBBLE's) or PPO (PrefPPO's). The service hands
+//! it each trajectory ([`Backbone::observe`]); the backbone decides what to train, when
+//! to publish, what the actors' normaliser is and how much each actor may run ahead.
+
+use anyhow::Result;
+use pbrl_common::nets::export;
+use pbrl_common::wire::Weights;
+use pbrl_common::{RunningNorm, Trajectory};
+use serde::{Deserialize, Serialize};
+
+use crate::config::{Algo, LearnerConfig};
+use crate::ppo::{Ppo, PpoState, PpoStats};
+use crate::reward::TrainReward;
+use crate::sac::{Sac, SacLosses, SacState};
+
+pub enum Backbone {
+    Sac(Box<Sac>),
+    /// PPO and the rollout being collected.
+    Ppo(Box<Ppo>, Vec<Trajectory>),
+}
+
+/// What the backbone keeps between publications (saved with the checkpoint).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Publication {
+    /// SAC gradient steps since the last publication.
+    pub since: u64,
+    /// Episodes of the current version received (deterministic mode).
+    pub episodes: u64,
+    /// Env steps the current version was made at.
+    pub env_steps: u64,
+}
+
+/// Losses of the newest update.
+#[derive(Clone, Copy, Debug)]
+pub enum Losses {
+    Sac(SacLosses),
+    Ppo(PpoStats),
+}
+
+/// What observing one trajectory did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Observed {
+    /// Gradient steps (SAC) or minibatch updates (PPO) taken.
+    pub updates: u64,
+    pub losses: Option<Losses>,
+    /// New weights are due.
+    pub publish: bool,
+}
+
+#[derive(Serialize, Deserialize)]
+pub enum BackboneState {
+    Sac(SacState),
+    Ppo(PpoState),
+}
+
+impl Backbone {
+    pub fn new(cfg: &LearnerConfig) -> Result<Self> {
+        Ok(match cfg.algo {
+            Algo::Sac => Backbone::Sac(Box::new(Sac::new(
+                cfg.sac.clone(),
+                cfg.obs_dim,
+                cfg.act_dim,
+            )?)),
+            Algo::Ppo => Backbone::Ppo(
+                Box::new(Ppo::new(cfg.ppo.clone(), cfg.obs_dim, cfg.act_dim)?),
+                Vec::new(),
+            ),
+        })
+    }
+
+    /// Whether a trajectory acted by `version` is trained on when the current version is
+    /// `current`. PPO trains only on the current version's data, and so does the
+    /// deterministic mode; SAC takes any.
+    pub fn takes(&self, cfg: &LearnerConfig, version: u64, current: u64) -> bool {
+        version == current || !(cfg.sync || matches!(self, Backbone::Ppo(..)))
+    }
+
+    /// Train on one trajectory: SAC stores its transitions and takes the gradient steps
+    /// owed; PPO adds it to the rollout and trains once the rollout is full. `env_steps`
+    /// counts the steps before this trajectory.
+    pub fn observe(
+        &mut self,
+        cfg: &LearnerConfig,
+        t: Trajectory,
+        reward: &mut TrainReward,
+        env_steps: u64,
+        publication: &mut Publication,
+    ) -> Result<Observed> {
+        publication.episodes += 1;
+        let mut out = Observed::default();
+        match self {
+            Backbone::Sac(sac) => {
+                let was_random = sac.env_steps < sac.cfg.random_steps;
+                sac.observe(&t);
+                if let Some(e) = reward.entropy.as_mut().filter(|_| reward.model.is_none()) {
+                    e.add(&t.obs[..t.steps() * t.obs_dim as usize]);
+                }
+                let due = sac.updates_due();
+                if due > 0 {
+                    let now = env_steps + t.steps() as u64;
+                    let losses = tokio::task::block_in_place(|| -> Result<_> {
+                        let mut last = None;
+                        for _ in 0..due {
+                            last = Some(sac.update(|b| {
+                                reward
+                                    .minibatch(b, now)
+                                    .map_err(|e| candle_core::Error::Msg(format!("{e:#}")))
+                            })?);
+                        }
+                        Ok(last)
+                    })?;
+                    out.losses = losses.map(Losses::Sac);
+                    out.updates = due;
+                    publication.since += due;
+                }
+                out.publish = if cfg.sync {
+                    publication.episodes
+                        >= self.share(cfg, publication.env_steps) * cfg.actors as u64
+                } else {
+                    let Backbone::Sac(sac) = &*self else {
+                        unreachable!("matched above")
+                    };
+                    publication.since >= cfg.publish_every
+                        || (was_random && sac.env_steps >= sac.cfg.random_steps)
+                };
+            }
+            Backbone::Ppo(ppo, rollout) => {
+                rollout.push(t);
+                let steps: usize = rollout.iter().map(|t| t.steps()).sum();
+                if steps >= ppo.cfg.rollout_steps {
+                    let now = env_steps + rollout.last().map_or(0, |t| t.steps() as u64);
+                    let total = cfg.total_steps;
+                    let stats = tokio::task::block_in_place(|| -> Result<_> {
+                        let rewards = reward.per_step(rollout, now)?;
+                        Ok(ppo.train(rollout, &rewards, total)?)
+                    })?;
+                    if let Some(e) = reward.entropy.as_mut().filter(|_| reward.model.is_none()) {
+                        for t in rollout.iter() {
+                            e.add(&t.obs[..t.steps() * t.obs_dim as usize]);
+                        }
+                    }
+                    out.losses = Some(Losses::Ppo(stats));
+                    out.updates = stats.minibatch_updates;
+                    rollout.clear();
+                    out.publish = true;
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// The pretraining is over (PEBBLE, PrefPPO): the values learnt for the entropy bonus
+    /// mean nothing for r_hat. SAC resets its critics, PPO its value network.
+    pub fn reset_after_pretraining(&mut self) -> Result<()> {
+        match self {
+            Backbone::Sac(sac) => sac.reset_critics()?,
+            Backbone::Ppo(ppo, _) => ppo.reset_value()?,
+        }
+        Ok(())
+    }
+
+    /// Episodes each actor runs with the version published at `env_steps`: its share of
+    /// the env steps that version is for (SAC: until the next publication, or the random
+    /// steps; PPO: one rollout).
+    pub fn share(&self, cfg: &LearnerConfig, env_steps: u64) -> u64 {
+        let per_version = match self {
+            Backbone::Sac(s) if env_steps < s.cfg.random_steps => s.cfg.random_steps - env_steps,
+            Backbone::Sac(s) => cfg.publish_every * s.cfg.update_every,
+            Backbone::Ppo(p, _) => p.cfg.rollout_steps as u64,
+        };
+        per_version
+            .div_ceil(cfg.actors.max(1) as u64 * cfg.episode_steps.max(1) as u64)
+            .max(1)
+    }
+
+    /// The weights actors act with, and their credit.
+    pub fn weights(&self, cfg: &LearnerConfig, version: u64, env_steps: u64) -> Result<Weights> {
+        let (obs_dim, act_dim) = (cfg.obs_dim, cfg.act_dim);
+        let share = self.share(cfg, env_steps);
+        let (tensors, norm, random) = match self {
+            Backbone::Sac(s) => (
+                export(&s.policy.varmap)?,
+                // NOTE: SAC trains on raw observations; an identity normaliser travels.
+                RunningNorm {
+                    mean: vec![0.0; obs_dim],
+                    var: vec![1.0 - 1e-8; obs_dim],
+                    count: 1.0,
+                    clip: f32::MAX as f64,
+                },
+                env_steps < s.cfg.random_steps,
+            ),
+            Backbone::Ppo(p, _) => (export(&p.policy.varmap)?, p.norm.clone(), false),
+        };
+        Ok(Weights {
+            version,
+            env_steps,
+            obs_dim: obs_dim as u32,
+            act_dim: act_dim as u32,
+            tensors,
+            obs_mean: norm.mean.iter().map(|x| *x as f32).collect(),
+            obs_var: norm.var.iter().map(|x| *x as f32).collect(),
+            obs_clip: norm.clip as f32,
+            random_actions: random,
+            // NOTE: the credit each actor gets: its share of the steps until the next
+            // version, and one more to keep it busy while that version comes (the
+            // deterministic mode runs exactly the share). What waits for the learner is at
+            // most this per actor.
+            episodes_per_actor: (share + (!cfg.sync) as u64).min(u32::MAX as u64) as u32,
+            acks: Vec::new(),
+        })
+    }
+
+    /// The networks by name (for checkpoints).
+    pub fn networks(&self) -> Vec<(&'static str, &candle_nn::VarMap)> {
+        match self {
+            Backbone::Sac(s) => s.networks().to_vec(),
+            Backbone::Ppo(p, _) => p.networks().to_vec(),
+        }
+    }
+
+    pub fn state(&self) -> Result<BackboneState> {
+        Ok(match self {
+            Backbone::Sac(s) => BackboneState::Sac(s.state()?),
+            Backbone::Ppo(p, _) => BackboneState::Ppo(p.state()?),
+        })
+    }
+}

@@ -1,0 +1,619 @@
+//! Algorithm 1's bookkeeping, with no Zenoh inside: the annotation buffer, when a feedback
+//! session is due, choosing its queries, the queries in flight, storing answers in the
+//! label store (committed before they are acknowledged), the preference dataset D, the
+//! budget, and training the reward ensemble.
+//!
+//! The learner never waits for a teacher: queries go out, training goes on with the reward
+//! model it has, and answers are used at the next training of the ensemble, which starts
+//! once the session's queries are all answered (or the next session is due). Choosing
+//! queries (the ensemble's predictions on every candidate pair) and training run on a
+//! blocking thread ([`Feedback::job`]), one at a time, so trajectories keep flowing; the
+//! deterministic mode runs both in place instead.
+//!
+//! The label store is the truth about labels: query and trajectory ids come from it (never
+//! reused across restarts), D is rebuilt from it on resume, and the queries open in it
+//! are asked again.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use pbrl_common::wire::TrajectoryMsg;
+use pbrl_common::wire::{self, Answer, AnswerAck, Body, Preference, Query, Shown};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::config::PrefConfig;
+use crate::labels::{LabelStore, Stored, StoredTrajectory};
+use crate::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler};
+use crate::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
+use crate::state::RngState;
+
+/// Unix time in milliseconds.
+pub fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Counters of the feedback loop (saved with each checkpoint).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Counters {
+    /// Feedback sessions held.
+    pub sessions: u64,
+    /// Env steps at which the next session is due.
+    pub next_session_at: u64,
+    /// Labels of D the ensemble was last trained on (D's first `trained_labels`).
+    pub trained_labels: usize,
+    /// Trainings of the ensemble.
+    pub trainings: u64,
+    /// The ensemble's accuracy on D after its last training, and on the labels new to
+    /// that training before it (NaN before any).
+    pub accuracy: f64,
+    pub accuracy_new: f64,
+    /// Answers dropped: to a query this learner never asked, or repeated.
+    pub unknown_answers: u64,
+    pub repeated_answers: u64,
+    /// Queries asked again (unanswered for `query_retry_s`).
+    pub retried_queries: u64,
+}
+
+/// What a checkpoint keeps of the feedback loop (D and the open queries live in the label
+/// store; the ensemble's networks are saved beside the backbone's).
+#[derive(Clone, Serialize, Deserialize)]
+pub struct FeedbackState {
+    pub counters: Counters,
+    pub rng: RngState,
+    pub buffer: AnnotationBuffer,
+    pub model: RewardModelState,
+    /// The state-entropy bonus (while pretraining).
+    pub entropy: Option<crate::entropy::StateEntropy>,
+}
+
+/// A query asked and not answered yet.
+struct InFlight {
+    query: Box<Query>,
+    sent: Instant,
+}
+
+/// What a background job hands back.
+pub enum JobDone {
+    /// The pairs chosen for session `session` (indices into the snapshot's candidates).
+    Chosen {
+        session: u64,
+        env_steps: u64,
+        sampler: Sampler,
+        pairs: Vec<(Arc<Candidate>, Arc<Candidate>)>,
+    },
+    /// A trained ensemble, its statistics, and its accuracy on the new labels before.
+    Trained {
+        model: Box<RewardModel>,
+        stats: TrainStats,
+        labels: usize,
+        accuracy_new: f64,
+    },
+}
+
+/// What an answer did.
+pub enum Answered {
+    /// Stored (or stored before): acknowledge it.
+    Ack(AnswerAck),
+    /// Not for this learner: dropped with a warning and counted.
+    Dropped,
+}
+
+pub struct Feedback {
+    cfg: PrefConfig,
+    run: String,
+    buffer: AnnotationBuffer,
+    store: LabelStore,
+    /// D, in the order the answers were stored.
+    data: Vec<Labelled>,
+    segments: HashMap<u64, Arc<Segment>>,
+    /// The newest trained ensemble (untrained until the first session's answers).
+    model: Arc<RewardModel>,
+    in_flight: BTreeMap<u64, InFlight>,
+    job: Option<tokio::task::JoinHandle<Result<JobDone>>>,
+    rng: ChaCha8Rng,
+    pub counters: Counters,
+}
+
+impl Feedback {
+    /// Open the label store at `labels` (`:memory:` for none) and start the loop: the first
+    /// session comes at the end of the unsupervised pretraining.
+    pub fn new(
+        cfg: &PrefConfig,
+        run: &str,
+        obs_dim: usize,
+        act_dim: usize,
+        seed: u64,
+        labels: &std::path::Path,
+    ) -> Result<Self> {
+        let store = LabelStore::open(labels, run)?;
+        let mut model_cfg = cfg.model.clone();
+        model_cfg.seed = seed;
+        let model = RewardModel::new(model_cfg, obs_dim, act_dim)?;
+        let mut f = Self {
+            cfg: cfg.clone(),
+            run: run.into(),
+            buffer: AnnotationBuffer::new(cfg.annotation_capacity),
+            store,
+            data: Vec::new(),
+            segments: HashMap::new(),
+            model: Arc::new(model),
+            in_flight: BTreeMap::new(),
+            job: None,
+            // NOTE: its own stream of the run's seed, apart from the backbone's.
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f00d_0000_0001),
+            counters: Counters {
+                next_session_at: cfg.unsup_steps,
+                accuracy: f64::NAN,
+                accuracy_new: f64::NAN,
+                ..Counters::default()
+            },
+        };
+        // A store that holds labels (a run started over without a checkpoint keeps them;
+        // `--fresh` moves the store aside) is read in, and its sessions count.
+        f.reload()?;
+        f.catch_up()?;
+        Ok(f)
+    }
+
+    /// Read D and the open queries from the label store.
+    fn reload(&mut self) -> Result<()> {
+        self.data.clear();
+        for row in self.store.labels_since(0)? {
+            let first = self.segment(row.first)?;
+            let second = self.segment(row.second)?;
+            self.data.push(Labelled {
+                first,
+                second,
+                target: target(row.preference),
+            });
+        }
+        self.in_flight.clear();
+        for (id, _, bytes) in self.store.open_queries()? {
+            match wire::decode(&self.run, &bytes) {
+                Ok(Body::Query(q)) => {
+                    self.in_flight.insert(
+                        id,
+                        InFlight {
+                            query: q,
+                            // NOTE: asked again at once after a restart.
+                            sent: Instant::now() - Duration::from_secs(self.cfg.query_retry_s),
+                        },
+                    );
+                }
+                other => anyhow::bail!(
+                    "open query {id} in {} does not decode as a query: {:?}",
+                    self.store.path().display(),
+                    other.err()
+                ),
+            }
+        }
+        if !self.data.is_empty() || !self.in_flight.is_empty() {
+            tracing::info!(
+                labels = self.data.len(),
+                open = self.in_flight.len(),
+                "label store read"
+            );
+        }
+        Ok(())
+    }
+
+    fn segment(&mut self, id: u64) -> Result<Arc<Segment>> {
+        if let Some(s) = self.segments.get(&id) {
+            return Ok(s.clone());
+        }
+        let s = self.store.segment(id)?;
+        let seg = Arc::new(Segment {
+            obs: s.obs,
+            actions: s.actions,
+        });
+        self.segments.insert(id, seg.clone());
+        Ok(seg)
+    }
+
+    /// Keep a trajectory for queries.
+    pub fn observe(&mut self, msg: &TrajectoryMsg) {
+        self.buffer.push(Candidate::from_msg(msg));
+    }
+
+    /// The newest trained ensemble, if any.
+    pub fn model(&self) -> Option<Arc<RewardModel>> {
+        self.model.trained().then(|| self.model.clone())
+    }
+
+    /// The budget is spent: the ensemble is frozen.
+    pub fn frozen(&self) -> Result<bool> {
+        Ok(self.store.counts()?.asked >= self.cfg.max_feedback)
+    }
+
+    /// Whether a background job is running.
+    pub fn busy(&self) -> bool {
+        self.job.is_some()
+    }
+
+    /// Open queries.
+    pub fn open(&self) -> usize {
+        self.in_flight.len()
+    }
+
+    /// The label store's counts.
+    pub fn counts(&self) -> Result<crate::labels::Counts> {
+        self.store.counts()
+    }
+
+    /// The annotation buffer (for diagnostics against the truth).
+    pub fn buffer(&self) -> &AnnotationBuffer {
+        &self.buffer
+    }
+
+    /// A session is due at `env_steps`.
+    fn session_due(&self, env_steps: u64) -> Result<bool> {
+        Ok(env_steps >= self.counters.next_session_at
+            && self.buffer.len() >= 2
+            && !self.frozen()?)
+    }
+
+    /// New labels wait for training, and the session that asked them is answered (or the
+    /// next one is due).
+    fn training_due(&self, env_steps: u64) -> bool {
+        self.data.len() > self.counters.trained_labels
+            && (self.in_flight.is_empty() || env_steps >= self.counters.next_session_at)
+    }
+
+    /// Start what is due at `env_steps`, if nothing runs: training on new labels first,
+    /// else a session's query selection. In the background unless `inline`; inline, the
+    /// work is done here and its result returned.
+    pub fn start(&mut self, env_steps: u64, inline: bool) -> Result<Option<JobDone>> {
+        if self.job.is_some() {
+            return Ok(None);
+        }
+        let work: Box<dyn FnOnce() -> Result<JobDone> + Send> = if self.training_due(env_steps) {
+            let mut model = self.model.snapshot()?;
+            let data = self.data.clone();
+            let new = data[self.counters.trained_labels..].to_vec();
+            let trained_before = model.trained();
+            Box::new(move || {
+                let accuracy_new = if trained_before {
+                    model.accuracy(&new)?
+                } else {
+                    f64::NAN
+                };
+                let stats = model.train(&data)?;
+                Ok(JobDone::Trained {
+                    model: Box::new(model),
+                    stats,
+                    labels: data.len(),
+                    accuracy_new,
+                })
+            })
+        } else if self.session_due(env_steps)? {
+            let session = self.counters.sessions + 1;
+            let left = self.cfg.max_feedback - self.store.counts()?.asked;
+            let k = self.cfg.queries_per_session.min(left) as usize;
+            // NOTE: the first session is uniform: an untrained ensemble's disagreement
+            // means nothing.
+            let sampler = if session == 1 || !self.model.trained() {
+                Sampler::Uniform
+            } else {
+                self.cfg.sampler
+            };
+            let n = if sampler == Sampler::Uniform {
+                k
+            } else {
+                k * self.cfg.candidate_factor as usize
+            };
+            let idx = candidate_pairs(&mut self.rng, self.buffer.len(), n)?;
+            let candidates: Vec<(Arc<Candidate>, Arc<Candidate>)> = idx
+                .iter()
+                .map(|&(i, j)| (self.buffer.get(i).clone(), self.buffer.get(j).clone()))
+                .collect();
+            let model = self.model.clone();
+            Box::new(move || {
+                let chosen = if sampler == Sampler::Uniform {
+                    (0..k.min(candidates.len())).collect()
+                } else {
+                    let segs: Vec<(Segment, Segment)> = candidates
+                        .iter()
+                        .map(|(a, b)| (seg_of(a), seg_of(b)))
+                        .collect();
+                    let pairs: Vec<(&Segment, &Segment)> =
+                        segs.iter().map(|(a, b)| (a, b)).collect();
+                    let probs = model.preference_probs(&pairs)?;
+                    select(sampler, &probs, candidates.len(), k)
+                };
+                Ok(JobDone::Chosen {
+                    session,
+                    env_steps,
+                    sampler,
+                    pairs: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
+                })
+            })
+        } else {
+            return Ok(None);
+        };
+        if inline {
+            return Ok(Some(work()?));
+        }
+        self.job = Some(tokio::task::spawn_blocking(work));
+        Ok(None)
+    }
+
+    /// Wait for the background job (cancel-safe; only while [`Feedback::busy`]).
+    pub async fn job(&mut self) -> Result<JobDone> {
+        let Some(handle) = self.job.as_mut() else {
+            return std::future::pending().await;
+        };
+        let done = handle.await.context("the feedback job died")?;
+        self.job = None;
+        done
+    }
+
+    /// Take a job's result: a session's queries to send, or a trained ensemble (returned
+    /// for the reward; the first one ends the pretraining).
+    pub fn finish(&mut self, done: JobDone) -> Result<(Vec<Query>, Option<Arc<RewardModel>>)> {
+        match done {
+            JobDone::Chosen {
+                session,
+                env_steps,
+                sampler,
+                pairs,
+            } => {
+                let queries = self.ask(session, env_steps, sampler, &pairs)?;
+                self.counters.sessions = session;
+                while self.counters.next_session_at <= env_steps {
+                    self.counters.next_session_at += self.cfg.feedback_interval;
+                }
+                tracing::info!(
+                    session,
+                    env_steps,
+                    queries = queries.len(),
+                    sampler = ?sampler,
+                    "feedback session: queries asked"
+                );
+                Ok((queries, None))
+            }
+            JobDone::Trained {
+                model,
+                stats,
+                labels,
+                accuracy_new,
+            } => {
+                self.counters.trained_labels = labels;
+                self.counters.trainings += 1;
+                self.counters.accuracy = stats.accuracy;
+                self.counters.accuracy_new = accuracy_new;
+                tracing::info!(
+                    labels,
+                    epochs = stats.epochs,
+                    accuracy = format!("{:.3}", stats.accuracy),
+                    accuracy_on_new = format!("{accuracy_new:.3}"),
+                    "reward ensemble trained"
+                );
+                self.model = Arc::from(model);
+                Ok((Vec::new(), Some(self.model.clone())))
+            }
+        }
+    }
+
+    /// Record the chosen pairs in the label store (each query committed before it is sent)
+    /// and return the queries.
+    fn ask(
+        &mut self,
+        session: u64,
+        env_steps: u64,
+        sampler: Sampler,
+        pairs: &[(Arc<Candidate>, Arc<Candidate>)],
+    ) -> Result<Vec<Query>> {
+        let mut out = Vec::with_capacity(pairs.len());
+        let sampler_name = match sampler {
+            Sampler::Uniform => "uniform",
+            Sampler::Disagreement => "disagreement",
+            Sampler::Entropy => "entropy",
+        };
+        for (a, b) in pairs {
+            let asked_at_ms = now_ms();
+            let mut built = None;
+            let run = self.run.clone();
+            let asked = self.store.ask(
+                session,
+                sampler_name,
+                env_steps,
+                asked_at_ms,
+                &stored(a),
+                &stored(b),
+                |id, first, second| {
+                    let q = Query {
+                        id,
+                        session,
+                        asked_at_ms,
+                        first: shown(a, first),
+                        second: shown(b, second),
+                    };
+                    let bytes = wire::encode(&run, &Body::Query(Box::new(q.clone())));
+                    built = Some(q);
+                    bytes
+                },
+            )?;
+            let q = built.context("the label store did not build the query")?;
+            self.segments.insert(asked.first, Arc::new(seg_of(a)));
+            self.segments.insert(asked.second, Arc::new(seg_of(b)));
+            self.in_flight.insert(
+                asked.query,
+                InFlight {
+                    query: Box::new(q.clone()),
+                    sent: Instant::now(),
+                },
+            );
+            out.push(q);
+        }
+        Ok(out)
+    }
+
+    /// Store a teacher's answer (committed before this returns) and say whether to
+    /// acknowledge it.
+    pub fn answer(&mut self, a: &Answer) -> Result<Answered> {
+        let stored = self.store.answer(
+            a.query,
+            a.preference,
+            &a.teacher,
+            &a.teacher_id,
+            a.took_ms,
+            now_ms(),
+        )?;
+        match stored {
+            Stored::New | Stored::Late => {
+                let open = self.in_flight.remove(&a.query);
+                if a.preference != Preference::Skip {
+                    let (first, second) = match &open {
+                        Some(f) => (f.query.first.id, f.query.second.id),
+                        None => {
+                            // NOTE: a late answer to an expired query: its ids are in D.
+                            let row = self
+                                .store
+                                .labels_since(0)?
+                                .into_iter()
+                                .find(|r| r.query == a.query)
+                                .context("a stored answer is not in D")?;
+                            (row.first, row.second)
+                        }
+                    };
+                    let (first, second) = (self.segment(first)?, self.segment(second)?);
+                    self.data.push(Labelled {
+                        first,
+                        second,
+                        target: target(a.preference),
+                    });
+                }
+            }
+            Stored::Repeated => {
+                self.counters.repeated_answers += 1;
+                tracing::debug!(query = a.query, teacher = %a.teacher_id, "an answer came again; the first stands");
+            }
+            Stored::Unknown => {
+                self.counters.unknown_answers += 1;
+                tracing::warn!(
+                    query = a.query,
+                    teacher = %a.teacher_id,
+                    "dropped an answer to a query this run never asked"
+                );
+                return Ok(Answered::Dropped);
+            }
+        }
+        Ok(Answered::Ack(AnswerAck {
+            teacher_id: a.teacher_id.clone(),
+            queries: vec![a.query],
+        }))
+    }
+
+    /// Queries to ask again (unanswered for `query_retry_s`); queries past
+    /// `query_expiry_s` expire instead.
+    pub fn retry(&mut self) -> Result<Vec<Query>> {
+        let retry = Duration::from_secs(self.cfg.query_retry_s);
+        let now = now_ms();
+        let mut again = Vec::new();
+        let mut expired = Vec::new();
+        for (id, f) in self.in_flight.iter_mut() {
+            let age_ms = now.saturating_sub(f.query.asked_at_ms);
+            if self.cfg.query_expiry_s > 0 && age_ms >= self.cfg.query_expiry_s * 1000 {
+                expired.push(*id);
+            } else if f.sent.elapsed() >= retry {
+                f.sent = Instant::now();
+                again.push((*f.query).clone());
+            }
+        }
+        for id in expired {
+            self.store.expire(id, now)?;
+            self.in_flight.remove(&id);
+            tracing::warn!(query = id, "a query went unanswered too long: expired");
+        }
+        self.counters.retried_queries += again.len() as u64;
+        Ok(again)
+    }
+
+    /// The ensemble's networks (for checkpoints).
+    pub fn networks(&self) -> Vec<(String, &candle_nn::VarMap)> {
+        self.model.networks()
+    }
+
+    pub fn state(&self) -> Result<FeedbackState> {
+        Ok(FeedbackState {
+            counters: self.counters.clone(),
+            rng: RngState::of(&self.rng),
+            buffer: self.buffer.clone(),
+            model: self.model.state()?,
+            entropy: None,
+        })
+    }
+
+    /// Continue from a checkpoint's state (the networks are loaded apart, into
+    /// [`Feedback::networks`]). Sessions asked after the checkpoint are in the label store:
+    /// they count, so the budget is not spent twice.
+    pub fn restore(&mut self, s: &FeedbackState) -> Result<()> {
+        self.counters = s.counters.clone();
+        self.rng = s.rng.restore();
+        self.buffer = s.buffer.clone();
+        let mut model = self.model.snapshot()?;
+        model.restore(&s.model)?;
+        self.model = Arc::new(model);
+        self.catch_up()?;
+        self.reload()
+    }
+
+    /// Sessions asked after the state this loop started from are in the label store: they
+    /// count (the budget is not spent twice, session numbers stay unique).
+    fn catch_up(&mut self) -> Result<()> {
+        let last = self.store.last_session()?;
+        while self.counters.sessions < last {
+            self.counters.sessions += 1;
+            self.counters.next_session_at += self.cfg.feedback_interval;
+        }
+        Ok(())
+    }
+}
+
+/// The soft target of a preference: P[second preferred].
+fn target(p: Preference) -> f32 {
+    match p {
+        Preference::First => 0.0,
+        Preference::Second => 1.0,
+        Preference::Equal | Preference::Skip => 0.5,
+    }
+}
+
+fn seg_of(c: &Candidate) -> Segment {
+    Segment {
+        obs: c.obs.clone(),
+        actions: c.actions.clone(),
+    }
+}
+
+fn stored(c: &Candidate) -> StoredTrajectory<'_> {
+    StoredTrajectory {
+        actor: c.key.actor,
+        incarnation: c.key.incarnation,
+        seq: c.key.seq,
+        seed: c.seed,
+        policy_version: c.policy_version,
+        obs_dim: c.obs_dim as usize,
+        act_dim: c.act_dim as usize,
+        obs: &c.obs,
+        actions: &c.actions,
+    }
+}
+
+fn shown(c: &Candidate, id: u64) -> Shown {
+    Shown {
+        id,
+        seed: c.seed,
+        policy_version: c.policy_version,
+        act_dim: c.act_dim,
+        actions: c.actions.clone(),
+        truth: c.truth.clone(),
+        replay: None,
+    }
+}

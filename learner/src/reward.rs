@@ -1,0 +1,201 @@
+//! What the policy trains on, in one place (`shared/method.md` sections 1, 5 and 6):
+//!
+//! - `truth`: the ground truth r (a baseline; only it reads the truth);
+//! - `task`: the sketchy task reward r_task alone (a baseline);
+//! - `pref` (PEBBLE, PrefPPO): the k-NN state-entropy bonus while pretraining, then the
+//!   learnt r_hat, the mean of the ensemble's members;
+//! - `decoupled`: `lambda_t r_task + r_hat`, lambda_t decaying linearly or exponentially.
+//!
+//! SAC forms the reward of each minibatch when it is drawn ([`TrainReward::minibatch`],
+//! lambda at every gradient step); PPO forms the rollout's once ([`TrainReward::per_step`],
+//! lambda fixed per rollout).
+
+use std::sync::Arc;
+
+use anyhow::Result;
+use candle_core::{Device, Tensor};
+use pbrl_common::Trajectory;
+use serde::{Deserialize, Serialize};
+
+use crate::entropy::StateEntropy;
+use crate::reward_model::RewardModel;
+use crate::sac::Batch;
+
+/// The reward the policy is trained on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum RewardSource {
+    /// The ground truth r = r_R + r_H (a baseline).
+    #[serde(alias = "true")]
+    #[value(alias = "true")]
+    Truth,
+    /// The sketchy task reward r_task = -d alone (a baseline).
+    Task,
+    /// Learnt from preferences alone (PEBBLE, PrefPPO).
+    Pref,
+    /// lambda_t r_task + the learnt reward (Decoupled PEBBLE, Decoupled PrefPPO).
+    Decoupled,
+}
+
+impl RewardSource {
+    /// Learnt from a teacher's preferences.
+    pub fn learnt(self) -> bool {
+        matches!(self, RewardSource::Pref | RewardSource::Decoupled)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            RewardSource::Truth => "truth",
+            RewardSource::Task => "task",
+            RewardSource::Pref => "pref",
+            RewardSource::Decoupled => "decoupled",
+        }
+    }
+}
+
+/// How lambda_t decays (paper Eq. 4-5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Schedule {
+    /// lambda_0 (T - t) / T.
+    Linear,
+    /// lambda_0 (1 - rho)^t.
+    Exp,
+}
+
+/// lambda_t at `t` env steps of a run of `total` (0 past the end of the linear schedule).
+pub fn lambda(schedule: Schedule, lambda0: f64, rho: f64, t: u64, total: u64) -> f64 {
+    match schedule {
+        Schedule::Linear => lambda0 * (total.saturating_sub(t)) as f64 / total.max(1) as f64,
+        // NOTE: t, not the t/2 of the authors' SAC code (method.md section 5).
+        Schedule::Exp => lambda0 * (1.0 - rho).powf(t as f64),
+    }
+}
+
+/// The reward the policy trains on now.
+pub struct TrainReward {
+    pub source: RewardSource,
+    pub schedule: Schedule,
+    pub lambda0: f64,
+    pub rho: f64,
+    pub total_steps: u64,
+    /// The newest trained ensemble (none until the first is trained: pretraining).
+    pub model: Option<Arc<RewardModel>>,
+    /// The state-entropy bonus of the pretraining (learnt rewards only).
+    pub entropy: Option<StateEntropy>,
+}
+
+impl TrainReward {
+    /// Pretraining on the state-entropy bonus: a learnt reward with no trained model yet.
+    pub fn pretraining(&self) -> bool {
+        self.source.learnt() && self.model.is_none()
+    }
+
+    /// The task reward's weight at `t` env steps (0 unless decoupled).
+    pub fn lambda(&self, t: u64) -> f64 {
+        match self.source {
+            RewardSource::Decoupled => {
+                lambda(self.schedule, self.lambda0, self.rho, t, self.total_steps)
+            }
+            _ => 0.0,
+        }
+    }
+
+    /// The learnt part for rows `obs` x `act` (`[n, 1]`): the state-entropy bonus while
+    /// pretraining, r_hat after.
+    fn learnt(&mut self, obs: &Tensor, act: &Tensor) -> Result<Tensor> {
+        if let Some(model) = &self.model {
+            return Ok(model.predict_tensor(obs, act)?);
+        }
+        let n = obs.dim(0)?;
+        let entropy = self
+            .entropy
+            .as_mut()
+            .ok_or_else(|| anyhow::anyhow!("a learnt reward without its entropy bonus"))?;
+        let rows = obs.flatten_all()?.to_vec1::<f32>()?;
+        // NOTE: a SAC minibatch is drawn from states already in the pool.
+        let bonus = entropy.reward(&rows, true);
+        Ok(Tensor::from_vec(bonus, (n, 1), &Device::Cpu)?)
+    }
+
+    /// The reward of a SAC minibatch at `t` env steps (`[n, 1]`).
+    pub fn minibatch(&mut self, b: &Batch, t: u64) -> Result<Tensor> {
+        Ok(match self.source {
+            RewardSource::Truth => b.truth.clone(),
+            RewardSource::Task => b.task.clone(),
+            RewardSource::Pref => self.learnt(&b.obs, &b.act)?,
+            RewardSource::Decoupled => {
+                let l = self.lambda(t);
+                let learnt = self.learnt(&b.obs, &b.act)?;
+                if self.pretraining() {
+                    learnt
+                } else {
+                    ((&b.task * l)? + learnt)?
+                }
+            }
+        })
+    }
+
+    /// Per-step rewards of a PPO rollout at `t` env steps (lambda fixed for the rollout).
+    pub fn per_step(&mut self, rollout: &[Trajectory], t: u64) -> Result<Vec<Vec<f32>>> {
+        let l = self.lambda(t);
+        let mut out = Vec::with_capacity(rollout.len());
+        for tr in rollout {
+            let task: Vec<f32> = tr.rewards.iter().map(|r| r.task).collect();
+            let r = match self.source {
+                RewardSource::Truth => tr.rewards.iter().map(|r| r.truth).collect(),
+                RewardSource::Task => task,
+                RewardSource::Pref | RewardSource::Decoupled => {
+                    let (n, o, a) = (tr.steps(), tr.obs_dim as usize, tr.act_dim as usize);
+                    let obs = Tensor::from_slice(&tr.obs[..n * o], (n, o), &Device::Cpu)?;
+                    let act = Tensor::from_slice(&tr.actions, (n, a), &Device::Cpu)?;
+                    let pretraining = self.pretraining();
+                    let learnt = if pretraining {
+                        let rows = &tr.obs[..n * o];
+                        let e = self
+                            .entropy
+                            .as_mut()
+                            .ok_or_else(|| anyhow::anyhow!("no entropy bonus"))?;
+                        // NOTE: PPO's rollout states are added to the pool after this.
+                        e.reward(rows, false)
+                    } else {
+                        self.learnt(&obs, &act)?.flatten_all()?.to_vec1::<f32>()?
+                    };
+                    if self.source == RewardSource::Decoupled && !pretraining {
+                        learnt
+                            .iter()
+                            .zip(&task)
+                            .map(|(h, t)| (l as f32) * t + h)
+                            .collect()
+                    } else {
+                        learnt
+                    }
+                }
+            };
+            out.push(r);
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schedules_at_the_start_the_middle_and_the_end() {
+        // Reference: linear: 15 * (T - t) / T at t = 0, T/2, T -> 15, 7.5, 0.
+        //            exp: 10 * (1 - 1e-5)^t at t = 0, 5e5, 1e6 -> 10, 10 * e^(5e5 ln(1 - 1e-5))
+        //            = 10 * 0.0067379 = 0.067379..., 10 * 4.5399e-5 = 4.5399e-4.
+        let t = 1_000_000;
+        assert_eq!(lambda(Schedule::Linear, 15.0, 0.0, 0, t), 15.0);
+        assert_eq!(lambda(Schedule::Linear, 15.0, 0.0, t / 2, t), 7.5);
+        assert_eq!(lambda(Schedule::Linear, 15.0, 0.0, t, t), 0.0);
+        assert_eq!(lambda(Schedule::Linear, 15.0, 0.0, t + 5, t), 0.0);
+        assert_eq!(lambda(Schedule::Exp, 10.0, 1e-5, 0, t), 10.0);
+        let mid = lambda(Schedule::Exp, 10.0, 1e-5, t / 2, t);
+        assert!((mid - 0.067_379).abs() < 1e-5, "{mid}");
+        let end = lambda(Schedule::Exp, 10.0, 1e-5, t, t);
+        assert!((end - 4.5399e-4).abs() < 1e-7, "{end}");
+    }
+}

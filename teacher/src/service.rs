@@ -1,0 +1,179 @@
+//! The teacher service: answers the learner's preference queries over Zenoh.
+//!
+//! Delivery is label-grade. A query comes again until the learner has stored its answer,
+//! so the teacher keeps every answer it gave and, asked again, sends the same answer (it
+//! never judges a query twice). An answer stays unacknowledged until the learner says it
+//! committed it to the label store ([`AnswerAck`]); unacknowledged answers are sent again
+//! every `resend_s` seconds, so an answer given while the learner was down reaches it
+//! once it is back. A scripted teacher can lose nothing by dying: the learner asks its
+//! open queries again of the next one.
+
+use std::collections::{BTreeMap, HashMap};
+use std::future::Future;
+use std::time::{Duration, Instant};
+
+use anyhow::Result;
+use pbrl_common::bus::{Inbox, MessagePublisher};
+use pbrl_common::wire::{check_teacher_id, Answer, AnswerAck, Body, Preference, Query};
+use pbrl_common::Keys;
+use zenoh::qos::Priority;
+use zenoh::Session;
+
+use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
+
+/// Whoever judges queries: a scripted teacher, or (next) a person.
+pub trait Teacher: Send {
+    /// The kind of teacher, as the label store records it.
+    fn kind(&self) -> String;
+    /// Judge a query.
+    fn judge(&mut self, q: &Query) -> Preference;
+}
+
+impl Teacher for Scripted {
+    fn kind(&self) -> String {
+        self.config().kind.name().to_string()
+    }
+
+    fn judge(&mut self, q: &Query) -> Preference {
+        self.answer(&q.first.truth, &q.second.truth)
+    }
+}
+
+/// The teacher service's settings.
+#[derive(Clone, Debug)]
+pub struct TeacherConfig {
+    pub run: String,
+    /// This teacher's id (key expressions `pbrl/<run>/teacher/<id>/...`).
+    pub id: String,
+    /// Send unacknowledged answers again after this long.
+    pub resend: Duration,
+}
+
+impl TeacherConfig {
+    pub fn new(run: &str, id: &str) -> Self {
+        Self {
+            run: run.into(),
+            id: id.into(),
+            resend: Duration::from_secs(5),
+        }
+    }
+}
+
+/// What a teacher did.
+#[derive(Clone, Debug, Default)]
+pub struct TeacherSummary {
+    /// Queries judged (each once).
+    pub judged: u64,
+    /// Answers by kind: first, second, equal, skip.
+    pub by_kind: BTreeMap<&'static str, u64>,
+    /// Answers sent again (asked again, or unacknowledged for a while).
+    pub resent: u64,
+    /// Answers the learner acknowledged.
+    pub acknowledged: u64,
+    /// Malformed messages, or another run's, dropped.
+    pub dropped: u64,
+}
+
+/// Run a scripted teacher of `scripted`'s kind until `shutdown`.
+pub async fn run(
+    cfg: TeacherConfig,
+    scripted: ScriptedConfig,
+    session: Session,
+    shutdown: impl Future<Output = ()>,
+) -> Result<TeacherSummary> {
+    let teacher = Scripted::new(scripted)?;
+    serve(cfg, teacher, session, shutdown).await
+}
+
+/// An answer given and not yet acknowledged.
+struct Given {
+    answer: Answer,
+    sent: Instant,
+    acknowledged: bool,
+}
+
+/// Answer queries with `teacher` until `shutdown`.
+pub async fn serve(
+    cfg: TeacherConfig,
+    mut teacher: impl Teacher,
+    session: Session,
+    shutdown: impl Future<Output = ()>,
+) -> Result<TeacherSummary> {
+    check_teacher_id("teacher id", &cfg.id)?;
+    let keys = Keys::new(&cfg.run)?;
+    let mut queries = Inbox::queries(&session, &keys).await?;
+    let mut acks = Inbox::answer_acks(&session, &keys, &cfg.id).await?;
+    let answers =
+        MessagePublisher::new(&session, &keys, keys.answer(&cfg.id), Priority::DataHigh).await?;
+    tracing::info!(run = %cfg.run, id = %cfg.id, kind = %teacher.kind(), "teacher ready");
+    let mut given: HashMap<u64, Given> = HashMap::new();
+    let mut summary = TeacherSummary::default();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            q = queries.next() => {
+                let q = q?;
+                let answer = match given.get_mut(&q.id) {
+                    // NOTE: asked again: the learner has not stored it; the same answer.
+                    Some(g) => {
+                        summary.resent += 1;
+                        g.sent = Instant::now();
+                        g.answer.clone()
+                    }
+                    None => {
+                        let start = Instant::now();
+                        let preference = teacher.judge(&q);
+                        let answer = Answer {
+                            query: q.id,
+                            preference,
+                            teacher: teacher.kind(),
+                            teacher_id: cfg.id.clone(),
+                            took_ms: start.elapsed().as_millis() as u64,
+                        };
+                        summary.judged += 1;
+                        *summary.by_kind.entry(preference.name()).or_default() += 1;
+                        given.insert(q.id, Given { answer: answer.clone(), sent: Instant::now(), acknowledged: false });
+                        answer
+                    }
+                };
+                answers.send(&Body::Answer(answer)).await?;
+            }
+            a = acks.next() => {
+                let AnswerAck { queries: ids, .. } = a?;
+                for id in ids {
+                    if let Some(g) = given.get_mut(&id) {
+                        if !g.acknowledged {
+                            g.acknowledged = true;
+                            summary.acknowledged += 1;
+                        }
+                    }
+                }
+            }
+            _ = tick.tick() => {
+                for g in given.values_mut() {
+                    if !g.acknowledged && g.sent.elapsed() >= cfg.resend {
+                        g.sent = Instant::now();
+                        summary.resent += 1;
+                        answers.send(&Body::Answer(g.answer.clone())).await?;
+                    }
+                }
+            }
+        }
+    }
+    summary.dropped = queries.dropped.get() + acks.dropped.get();
+    let open = given.values().filter(|g| !g.acknowledged).count();
+    if open > 0 {
+        tracing::warn!(
+            open,
+            "stopping with answers the learner has not acknowledged (it asks those queries again)"
+        );
+    }
+    Ok(summary)
+}
+
+/// The default id of a teacher of `kind` with `seed`.
+pub fn default_id(kind: TeacherKind, seed: u64) -> String {
+    format!("{}-{seed}", kind.name())
+}
