@@ -37,7 +37,7 @@ pub struct LearnArgs {
     /// Task: the feeding world, or the point task made for tests.
     #[arg(long, value_enum, default_value = "feeding")]
     pub task: Task,
-    /// Network sizes: 256x256 (SAC, batch 256), 512x512 (PPO) and 3x128 (reward
+    /// Network sizes: 256x256 (SAC, batch 256), 512x512 (PPO) and 3x64 (reward
     /// ensemble), or the authors' sizes everywhere (`paper`: 512x512, SAC batch 512,
     /// reward 3x256). Flags given explicitly win over a preset.
     #[arg(long, default_value = "default", value_parser = ["default", "paper"])]

@@ -121,52 +121,84 @@ fn a_killed_run_resumes_from_its_checkpoint_and_its_curve_has_every_row_once() {
 fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() {
     // Deterministic mode, one actor. SAC on the point task publishes after the 600 random
     // steps and then every 17 episodes (510 steps): 1620 and 3150 are publication points.
-    let whole = tempfile::tempdir().unwrap();
-    let halves = tempfile::tempdir().unwrap();
-    let other = tempfile::tempdir().unwrap();
-    let run = |dir: &Path, seed: &str, steps: &str| {
-        let a = train_args(
-            dir,
+    // On the ground truth (the backbone alone) and learnt from preferences (the whole
+    // loop: the ensemble and its optimiser, the annotation buffer, the label store, the
+    // counters; the first session at 1,200 env steps, the second at 2,700).
+    for (reward, nets) in [
+        ("truth", &["policy", "critic", "target_critic"][..]),
+        (
+            "pref",
             &[
-                "--sync",
-                "--actors",
-                "1",
-                "--eval-episodes",
-                "0",
-                "--seed",
-                seed,
-                "--steps",
-                steps,
-            ],
+                "policy",
+                "critic",
+                "target_critic",
+                "reward_0",
+                "reward_1",
+                "reward_2",
+            ][..],
+        ),
+    ] {
+        let whole = tempfile::tempdir().unwrap();
+        let halves = tempfile::tempdir().unwrap();
+        let other = tempfile::tempdir().unwrap();
+        let run = |dir: &Path, seed: &str, steps: &str| {
+            let a = train_args(
+                dir,
+                &[
+                    "--sync",
+                    "--actors",
+                    "1",
+                    "--eval-episodes",
+                    "0",
+                    "--reward",
+                    reward,
+                    "--seed",
+                    seed,
+                    "--steps",
+                    steps,
+                ],
+            );
+            let out = pbrl(&a).output().unwrap();
+            assert!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            RunFolder::new(dir).latest_checkpoint().unwrap().unwrap()
+        };
+        let a = run(whole.path(), "5", "3150");
+        run(halves.path(), "5", "1620");
+        let b = run(halves.path(), "5", "3150");
+        assert_eq!(a.manifest.env_steps, 3150);
+        assert_eq!(b.manifest.env_steps, 3150);
+        assert!(log(&RunFolder::new(halves.path())).contains("resuming the run"));
+        for net in nets {
+            let file = format!("{net}.safetensors");
+            let (x, y) = (
+                std::fs::read(a.dir.join(&file)).unwrap(),
+                std::fs::read(b.dir.join(&file)).unwrap(),
+            );
+            assert!(x == y, "{reward}: {net} differs after the resume");
+        }
+        if reward == "pref" {
+            let labels = |d: &Path| {
+                let store =
+                    pbrl_learner::labels::LabelStore::open(&d.join("labels.sqlite"), "sac-pref-s5")
+                        .unwrap();
+                let rows = store.labels_since(0).unwrap();
+                (store.counts().unwrap(), rows.len())
+            };
+            let (ca, na) = labels(whole.path());
+            assert_eq!(ca.asked, 80, "two sessions of 40: {ca:?}");
+            assert_eq!((ca, na), labels(halves.path()));
+        }
+        // The check can fail: another seed gives other weights.
+        let c = run(other.path(), "6", "3150");
+        assert_ne!(
+            std::fs::read(c.dir.join("policy.safetensors")).unwrap(),
+            std::fs::read(a.dir.join("policy.safetensors")).unwrap()
         );
-        let out = pbrl(&a).output().unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        RunFolder::new(dir).latest_checkpoint().unwrap().unwrap()
-    };
-    let a = run(whole.path(), "5", "3150");
-    run(halves.path(), "5", "1620");
-    let b = run(halves.path(), "5", "3150");
-    assert_eq!(a.manifest.env_steps, 3150);
-    assert_eq!(b.manifest.env_steps, 3150);
-    assert!(log(&RunFolder::new(halves.path())).contains("resuming the run"));
-    for net in ["policy", "critic", "target_critic"] {
-        let file = format!("{net}.safetensors");
-        let (x, y) = (
-            std::fs::read(a.dir.join(&file)).unwrap(),
-            std::fs::read(b.dir.join(&file)).unwrap(),
-        );
-        assert!(x == y, "{net} differs after the resume");
     }
-    // The check can fail: another seed gives other weights.
-    let c = run(other.path(), "6", "3150");
-    assert_ne!(
-        std::fs::read(c.dir.join("policy.safetensors")).unwrap(),
-        std::fs::read(a.dir.join("policy.safetensors")).unwrap()
-    );
 }
 
 #[test]
