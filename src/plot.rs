@@ -31,6 +31,21 @@ pub struct PlotArgs {
     /// `--at` (0: the row at `--at` alone).
     #[arg(long, default_value_t = 100_000)]
     pub window: u64,
+    /// The figures' x axis: env steps, or the labels answered so far (each row's x is the
+    /// mean over seeds of `labels_answered` at that row).
+    #[arg(long, value_enum, default_value = "env-steps")]
+    pub x: XAxis,
+    /// Also draw these curve columns (any of `curve.csv`'s, e.g. `reward_accuracy`,
+    /// `rhat_step_corr`, `lambda`, `labels_answered`), one figure each.
+    #[arg(long, value_delimiter = ',')]
+    pub columns: Vec<String>,
+}
+
+/// What the figures are drawn against.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum XAxis {
+    EnvSteps,
+    Labels,
 }
 
 /// The figures: curve column (after `eval_` for the evaluations), title, y label.
@@ -59,9 +74,18 @@ struct RunData {
     /// NaN where the curve has none).
     last_steps: u64,
     wall_s: f64,
+    /// Labels answered at each bucket (preference runs).
+    labels: BTreeMap<u64, f64>,
+    /// Asked-for columns at each bucket (finite values only).
+    extra: BTreeMap<String, BTreeMap<u64, f64>>,
 }
 
-fn read_run(dir: &Path, prefix: &str, episodes_col: &str) -> Result<Option<RunData>> {
+fn read_run(
+    dir: &Path,
+    prefix: &str,
+    episodes_col: &str,
+    columns: &[String],
+) -> Result<Option<RunData>> {
     let config = dir.join("config.json");
     let curve = dir.join("curve.csv");
     if !config.exists() || !curve.exists() {
@@ -92,6 +116,15 @@ fn read_run(dir: &Path, prefix: &str, episodes_col: &str) -> Result<Option<RunDa
     let name = |i: usize| format!("{prefix}{}", FIGURES[i].0);
     let cols = [col(&name(0))?, col(&name(1))?, col(&name(2))?];
     let episodes = col(episodes_col)?;
+    let labels_col = col("labels_answered").ok();
+    let mut extra_cols = Vec::new();
+    for c in columns {
+        extra_cols.push((c.clone(), col(c)?));
+    }
+    let (mut labels, mut extra) = (
+        BTreeMap::new(),
+        BTreeMap::<String, BTreeMap<u64, f64>>::new(),
+    );
     let mut run = Run::new();
     let (mut last_steps, mut wall_s) = (0, 0.0);
     for (k, line) in lines.enumerate() {
@@ -107,6 +140,15 @@ fn read_run(dir: &Path, prefix: &str, episodes_col: &str) -> Result<Option<RunDa
         };
         let s = num(steps)? as u64;
         (last_steps, wall_s) = (s, wall.map_or(Ok(f64::NAN), num)?);
+        if let Some(c) = labels_col {
+            labels.insert(s / every, num(c)?);
+        }
+        for (name, c) in &extra_cols {
+            let v = num(*c)?;
+            if v.is_finite() {
+                extra.entry(name.clone()).or_default().insert(s / every, v);
+            }
+        }
         let v = [num(cols[0])?, num(cols[1])?, num(cols[2])?];
         if v.iter().all(|x| x.is_finite()) {
             let episodes = num(episodes)?;
@@ -118,6 +160,8 @@ fn read_run(dir: &Path, prefix: &str, episodes_col: &str) -> Result<Option<RunDa
         rows: run,
         last_steps,
         wall_s,
+        labels,
+        extra,
     }))
 }
 
@@ -173,8 +217,23 @@ fn wilson(k: f64, n: f64) -> (f64, f64) {
     (centre - half, centre + half)
 }
 
-/// A method's curve: (env steps, [(mean, std, n); 3]) per bucket.
-type Curve = Vec<(u64, [(f64, f64, usize); 3])>;
+/// A method's curve: (x, [(mean, std, n); 3]) per bucket.
+type Curve = Vec<(f64, [(f64, f64, usize); 3])>;
+
+/// The x of bucket `b` of `runs`: its env steps, or the mean labels answered there (none
+/// where no run has a count).
+fn x_of(x: XAxis, runs: &[RunData], b: u64, every: u64) -> Option<f64> {
+    match x {
+        XAxis::EnvSteps => Some((b * every) as f64),
+        XAxis::Labels => {
+            let xs: Vec<f64> = runs
+                .iter()
+                .filter_map(|r| r.labels.get(&b).copied())
+                .collect();
+            (!xs.is_empty()).then(|| xs.iter().sum::<f64>() / xs.len() as f64)
+        }
+    }
+}
 
 fn method_of(run: &str) -> Option<&str> {
     let (method, seed) = run.rsplit_once("-s")?;
@@ -207,7 +266,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         let Some(method) = method_of(&name) else {
             continue;
         };
-        match read_run(&e.path(), prefix, episodes) {
+        match read_run(&e.path(), prefix, episodes, &args.columns) {
             Ok(Some(run)) => methods.entry(method.to_string()).or_default().push(run),
             Ok(None) => {}
             Err(e) => eprintln!("skipped {name}: {e:#}"),
@@ -229,7 +288,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
             runs.iter().flat_map(|r| r.rows.keys().copied()).collect();
         let curve: Curve = buckets
             .into_iter()
-            .map(|b| {
+            .filter_map(|b| {
                 let fig = |i: usize| {
                     let xs: Vec<f64> = runs
                         .iter()
@@ -237,7 +296,7 @@ pub fn plot(args: PlotArgs) -> Result<()> {
                         .collect();
                     stats(&xs)
                 };
-                (b * every, [fig(0), fig(1), fig(2)])
+                Some((x_of(args.x, runs, b, every)?, [fig(0), fig(1), fig(2)]))
             })
             .collect();
         if curve.is_empty() {
@@ -250,9 +309,58 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         bail!("{}: no run has {what} rows yet", args.dir.display());
     }
     pbrl_actor::render::load_font()?;
+    let (xdesc, xfile) = match args.x {
+        XAxis::EnvSteps => ("env steps", ""),
+        XAxis::Labels => ("labels answered", "_vs_labels"),
+    };
     for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
-        let path = out.join(format!("{file}{column}.png"));
-        draw(&path, &format!("{title} ({what})"), ylabel, i, &curves)?;
+        let path = out.join(format!("{file}{column}{xfile}.png"));
+        draw(
+            &path,
+            &format!("{title} ({what})"),
+            ylabel,
+            xdesc,
+            i,
+            i == 1,
+            &curves,
+        )?;
+        println!("wrote {}", path.display());
+    }
+    // Any other column, one figure each.
+    for column in &args.columns {
+        let mut extra: BTreeMap<String, Curve> = BTreeMap::new();
+        for (method, runs) in &methods {
+            let every = runs[0].every;
+            let buckets: std::collections::BTreeSet<u64> = runs
+                .iter()
+                .flat_map(|r| {
+                    r.extra
+                        .get(column)
+                        .into_iter()
+                        .flat_map(|m| m.keys().copied())
+                })
+                .collect();
+            let curve: Curve = buckets
+                .into_iter()
+                .filter_map(|b| {
+                    let xs: Vec<f64> = runs
+                        .iter()
+                        .filter_map(|r| r.extra.get(column).and_then(|m| m.get(&b)).copied())
+                        .collect();
+                    let none = (f64::NAN, 0.0, 0);
+                    Some((x_of(args.x, runs, b, every)?, [stats(&xs), none, none]))
+                })
+                .collect();
+            if !curve.is_empty() {
+                extra.insert(method.clone(), curve);
+            }
+        }
+        if extra.is_empty() {
+            eprintln!("no run has values of {column}");
+            continue;
+        }
+        let path = out.join(format!("{column}{xfile}.png"));
+        draw(&path, column, column, xdesc, 0, false, &extra)?;
         println!("wrote {}", path.display());
     }
     // The summary table: each run's mean over the window up to each mark, then the mean
@@ -261,18 +369,28 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     // evaluation's own noise allows).
     let window = |every: u64| args.window.max(every);
     let mut md = format!(
-        "Figures of the {what}: each seed's mean over the rows of the last {} env steps up to the mark, then the mean over seeds [95% interval, Student's t]; \"pooled\" is the success rate over every episode of every seed in that window [Wilson's 95% interval].\n\n| method | env steps | seeds | ground-truth return | success rate | success, pooled (episodes) | preference return |\n|---|---|---|---|---|---|---|\n",
+        "Figures of the {what}: each seed's mean over the rows of the last {} env steps up to the mark, then the mean over seeds [95% interval, Student's t]; \"pooled\" is the success rate over every episode of every seed in that window [Wilson's 95% interval].\n\n| method | env steps | seeds | ground-truth return | success rate | success, pooled (episodes) | preference return | labels |\n|---|---|---|---|---|---|---|---|\n",
         args.window
     );
-    let mut csv = String::from("method,env_steps,seeds,window,return_truth_mean,return_truth_lo,return_truth_hi,success_rate_mean,success_rate_lo,success_rate_hi,pooled_success,pooled_lo,pooled_hi,pooled_episodes,return_human_mean,return_human_lo,return_human_hi\n");
-    for (method, curve) in &curves {
+    let mut csv = String::from("method,env_steps,seeds,window,return_truth_mean,return_truth_lo,return_truth_hi,success_rate_mean,success_rate_lo,success_rate_hi,pooled_success,pooled_lo,pooled_hi,pooled_episodes,return_human_mean,return_human_lo,return_human_hi,labels\n");
+    for method in curves.keys() {
         let runs = &methods[method];
         let every = runs[0].every;
         for &at in &args.at {
             let mark = at / every * every;
-            if !curve.iter().any(|(s, _)| *s == mark) {
+            if !runs.iter().any(|r| r.rows.contains_key(&(mark / every))) {
                 continue;
             }
+            // Labels answered by the mark (mean over seeds; blank for a run without).
+            let labels: Vec<f64> = runs
+                .iter()
+                .filter_map(|r| r.labels.range(..=mark / every).next_back().map(|(_, l)| *l))
+                .collect();
+            let labels = if labels.is_empty() {
+                String::new()
+            } else {
+                format!("{:.0}", labels.iter().sum::<f64>() / labels.len() as f64)
+            };
             let from = mark.saturating_sub(window(every)) / every + 1;
             let (mut per_seed, mut k, mut n): ([Vec<f64>; 3], f64, f64) = Default::default();
             for r in runs {
@@ -298,13 +416,13 @@ pub fn plot(args: PlotArgs) -> Result<()> {
             let clip = |x: f64| if x.is_nan() { x } else { x.clamp(0.0, 1.0) };
             let rate = (success.0, clip(success.1), clip(success.2));
             md.push_str(&format!(
-                "| {method} | {mark} | {seeds} | {} | {} | {pooled:.2} [{lo:.2}, {hi:.2}] ({n:.0}) | {} |\n",
+                "| {method} | {mark} | {seeds} | {} | {} | {pooled:.2} [{lo:.2}, {hi:.2}] ({n:.0}) | {} | {labels} |\n",
                 interval(truth, 1),
                 interval(rate, 2),
                 interval(human, 1)
             ));
             csv.push_str(&format!(
-                "{method},{mark},{seeds},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{pooled:.4},{lo:.4},{hi:.4},{n:.0},{:.4},{:.4},{:.4}\n",
+                "{method},{mark},{seeds},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{pooled:.4},{lo:.4},{hi:.4},{n:.0},{:.4},{:.4},{:.4},{labels}\n",
                 window(every), truth.0, truth.1, truth.2, success.0, success.1, success.2, human.0, human.1, human.2
             ));
         }
@@ -379,22 +497,24 @@ fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing: {e:?}")
 }
 
+#[allow(clippy::too_many_arguments)]
 fn draw(
     path: &Path,
     title: &str,
     ylabel: &str,
+    xdesc: &str,
     fig: usize,
+    rate: bool,
     curves: &BTreeMap<String, Curve>,
 ) -> Result<()> {
     let points = curves.values().flat_map(|c| c.iter());
-    let (mut x1, mut y0, mut y1) = (1u64, f64::MAX, f64::MIN);
+    let (mut x1, mut y0, mut y1) = (1f64, f64::MAX, f64::MIN);
     for (s, f) in points {
         x1 = x1.max(*s);
         y0 = y0.min(f[fig].0 - f[fig].1);
         y1 = y1.max(f[fig].0 + f[fig].1);
     }
     // A rate's axis and band stop at 0 and 1: mean ± std may pass them, the rate cannot.
-    let rate = fig == 1;
     let in_range = |v: f64| if rate { v.clamp(0.0, 1.0) } else { v };
     if rate {
         (y0, y1) = (0.0, 1.0);
@@ -407,26 +527,32 @@ fn draw(
         .margin(15)
         .x_label_area_size(45)
         .y_label_area_size(70)
-        .build_cartesian_2d(0f64..x1 as f64, (y0 - pad)..(y1 + pad))
+        .build_cartesian_2d(0f64..x1, (y0 - pad)..(y1 + pad))
         .map_err(draw_err)?;
     chart
         .configure_mesh()
-        .x_desc("env steps")
+        .x_desc(xdesc)
         .y_desc(ylabel)
-        .x_label_formatter(&|x| format!("{:.0}k", x / 1e3))
+        .x_label_formatter(&|x| {
+            if xdesc == "env steps" {
+                format!("{:.0}k", x / 1e3)
+            } else {
+                format!("{x:.0}")
+            }
+        })
         .draw()
         .map_err(draw_err)?;
     for (k, (method, curve)) in curves.iter().enumerate() {
         let color = line_color(k);
         let mut band: Vec<(f64, f64)> = curve
             .iter()
-            .map(|(s, f)| (*s as f64, in_range(f[fig].0 + f[fig].1)))
+            .map(|(s, f)| (*s, in_range(f[fig].0 + f[fig].1)))
             .collect();
         band.extend(
             curve
                 .iter()
                 .rev()
-                .map(|(s, f)| (*s as f64, in_range(f[fig].0 - f[fig].1))),
+                .map(|(s, f)| (*s, in_range(f[fig].0 - f[fig].1))),
         );
         chart
             .draw_series(std::iter::once(Polygon::new(band, color.mix(0.2).filled())))
@@ -434,7 +560,7 @@ fn draw(
         let seeds = curve.iter().map(|(_, f)| f[fig].2).max().unwrap_or(0);
         chart
             .draw_series(LineSeries::new(
-                curve.iter().map(|(s, f)| (*s as f64, f[fig].0)),
+                curve.iter().map(|(s, f)| (*s, f[fig].0)),
                 color.stroke_width(2),
             ))
             .map_err(draw_err)?

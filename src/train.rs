@@ -534,6 +534,13 @@ pub enum BenchCommand {
         /// Only this algorithm.
         #[arg(long)]
         algo: Option<String>,
+        /// Rewards to time, each a run (the learnt ones with the in-process oracle;
+        /// comma-separated).
+        #[arg(long, value_delimiter = ',', default_value = "truth,decoupled")]
+        rewards: Vec<String>,
+        /// Actor counts to time (comma-separated).
+        #[arg(long, value_delimiter = ',', default_value = "1,2")]
+        actors: Vec<u32>,
     },
     /// What a checkpoint costs with a full SAC replay buffer (feeding-sized transitions).
     Checkpoint {
@@ -553,51 +560,63 @@ struct TrainLine {
     args: TrainArgs,
 }
 
-fn bench_train(steps: u64, checkpoint_every: u64, only: Option<String>) -> Result<()> {
+fn bench_train(
+    steps: u64,
+    checkpoint_every: u64,
+    only: Option<String>,
+    rewards: &[String],
+    actor_counts: &[u32],
+) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()?;
     println!(
-        "{:<5} {:>6} {:>10} {:>12} {:>10} {:>8}",
-        "algo", "actors", "env steps", "env steps/s", "updates/s", "wall s"
+        "{:<5} {:<10} {:>6} {:>10} {:>12} {:>10} {:>8} {:>7}",
+        "algo", "reward", "actors", "env steps", "env steps/s", "updates/s", "wall s", "labels"
     );
     for algo in ["sac", "ppo"] {
         if only.as_deref().is_some_and(|a| a != algo) {
             continue;
         }
-        for actors in [1u32, 2] {
-            let out = std::env::temp_dir().join(format!(
-                "pbrl-bench-train-{}-{algo}-{actors}",
-                std::process::id()
-            ));
-            let line = [
-                "train".to_string(),
-                format!("--algo={algo}"),
-                format!("--actors={actors}"),
-                format!("--steps={steps}"),
-                format!("--log-every={steps}"),
-                "--eval-episodes=0".into(),
-                format!("--checkpoint-every={checkpoint_every}"),
-                format!("--run=bench-{algo}-{actors}"),
-                format!("--out={}", out.display()),
-            ];
-            let matches =
-                <TrainLine as clap::CommandFactory>::command().try_get_matches_from(line)?;
-            let TrainLine { mut args } =
-                <TrainLine as clap::FromArgMatches>::from_arg_matches(&matches)?;
-            args.learn.explicit = explicit_flags(&matches);
-            args.learn.quiet = true;
-            let start = std::time::Instant::now();
-            let (summary, _) = runtime.block_on(train_in_process(args))?;
-            let wall = start.elapsed().as_secs_f64();
-            let _ = std::fs::remove_dir_all(&out);
-            println!(
-                "{algo:<5} {actors:>6} {:>10} {:>12.0} {:>10.1} {wall:>8.1}",
-                summary.env_steps,
-                summary.env_steps as f64 / wall,
-                summary.updates as f64 / wall,
-            );
+        for &actors in actor_counts {
+            // NOTE: the rewards of one algorithm and actor count run one after the other,
+            // so their ratio is measured under the same conditions.
+            for reward in rewards {
+                let out = std::env::temp_dir().join(format!(
+                    "pbrl-bench-train-{}-{algo}-{reward}-{actors}",
+                    std::process::id()
+                ));
+                let line = [
+                    "train".to_string(),
+                    format!("--algo={algo}"),
+                    format!("--reward={reward}"),
+                    format!("--actors={actors}"),
+                    format!("--steps={steps}"),
+                    format!("--log-every={steps}"),
+                    "--eval-episodes=0".into(),
+                    format!("--checkpoint-every={checkpoint_every}"),
+                    format!("--run=bench-{algo}-{reward}-{actors}"),
+                    format!("--out={}", out.display()),
+                ];
+                let matches =
+                    <TrainLine as clap::CommandFactory>::command().try_get_matches_from(line)?;
+                let TrainLine { mut args } =
+                    <TrainLine as clap::FromArgMatches>::from_arg_matches(&matches)?;
+                args.learn.explicit = explicit_flags(&matches);
+                args.learn.quiet = true;
+                let start = std::time::Instant::now();
+                let (summary, _) = runtime.block_on(train_in_process(args))?;
+                let wall = start.elapsed().as_secs_f64();
+                let _ = std::fs::remove_dir_all(&out);
+                println!(
+                    "{algo:<5} {reward:<10} {actors:>6} {:>10} {:>12.0} {:>10.1} {wall:>8.1} {:>7}",
+                    summary.env_steps,
+                    summary.env_steps as f64 / wall,
+                    summary.updates as f64 / wall,
+                    summary.labels.map_or(0, |c| c.answered),
+                );
+            }
         }
     }
     Ok(())
@@ -610,7 +629,9 @@ pub fn bench(cmd: BenchCommand) -> Result<()> {
             steps,
             checkpoint_every,
             algo,
-        } => return bench_train(steps, checkpoint_every, algo),
+            rewards,
+            actors,
+        } => return bench_train(steps, checkpoint_every, algo, &rewards, &actors),
         BenchCommand::Checkpoint {
             transitions,
             increment,
@@ -660,6 +681,20 @@ pub fn bench(cmd: BenchCommand) -> Result<()> {
                 1e3 / ppo
             );
         }
+    }
+    // What preference learning adds, on one thread (as a service runs).
+    std::env::set_var("RAYON_NUM_THREADS", "1");
+    println!();
+    println!("preference learning (1 thread):");
+    for (reward_hidden, name) in [(vec![64, 64, 64], "3x64"), (vec![256, 256, 256], "3x256")] {
+        let plain = pbrl_learner::bench::sac_step_ms(256, 256, steps, 3)?;
+        let relabelled =
+            pbrl_learner::bench::sac_step_relabelled_ms(256, 256, steps, 3, &reward_hidden)?;
+        let epoch = pbrl_learner::reward_model::bench_epoch(1000, 200, &reward_hidden)?;
+        println!(
+            "  ensemble 3 x {name}: SAC step (256x256, B=256) {plain:.2} ms, relabelled {relabelled:.2} ms (+{:.0}%); one training epoch over 1,000 labels of 200-step pairs {epoch:.2} s",
+            100.0 * (relabelled / plain - 1.0)
+        );
     }
     Ok(())
 }

@@ -1,5 +1,6 @@
-//! Timing of the learner's unit of work: a SAC gradient step and a PPO minibatch update on
-//! feeding-sized inputs (observation 25, action 7), with synthetic data.
+//! Timing of the learner's unit of work: a SAC gradient step, a PPO minibatch update, and
+//! what preference learning adds (the ensemble relabelling each SAC minibatch, an epoch of
+//! ensemble training) on feeding-sized inputs (observation 25, action 7), synthetic data.
 
 use std::time::Instant;
 
@@ -44,6 +45,37 @@ fn synthetic(rng: &mut ChaCha8Rng, seed: u64, steps: usize) -> Trajectory {
 
 /// Milliseconds per SAC gradient step (median of `reps` timings of `steps` steps each).
 pub fn sac_step_ms(hidden: usize, batch: usize, steps: usize, reps: usize) -> Result<f64> {
+    sac_step_with(hidden, batch, steps, reps, None)
+}
+
+/// Milliseconds per SAC gradient step whose minibatch reward is the mean of a reward
+/// ensemble of `members` x `reward_hidden` (PEBBLE's relabelling).
+pub fn sac_step_relabelled_ms(
+    hidden: usize,
+    batch: usize,
+    steps: usize,
+    reps: usize,
+    reward_hidden: &[usize],
+) -> Result<f64> {
+    let cfg = crate::reward_model::RewardModelConfig {
+        hidden: reward_hidden.to_vec(),
+        ..Default::default()
+    };
+    let model = crate::reward_model::RewardModel::new(cfg, OBS, ACT)?;
+    sac_step_with(hidden, batch, steps, reps, Some(&model))
+}
+
+fn sac_step_with(
+    hidden: usize,
+    batch: usize,
+    steps: usize,
+    reps: usize,
+    model: Option<&crate::reward_model::RewardModel>,
+) -> Result<f64> {
+    let reward = |b: &crate::sac::Batch| match model {
+        Some(m) => m.predict_tensor(&b.obs, &b.act),
+        None => Ok(b.truth.clone()),
+    };
     let cfg = SacConfig {
         hidden: vec![hidden, hidden],
         batch,
@@ -58,13 +90,13 @@ pub fn sac_step_ms(hidden: usize, batch: usize, steps: usize, reps: usize) -> Re
         sac.observe(&synthetic(&mut rng, s, 200));
     }
     for _ in 0..3 {
-        sac.update(|b| Ok(b.truth.clone()))?;
+        sac.update(reward)?;
     }
     let mut times = Vec::new();
     for _ in 0..reps {
         let t = Instant::now();
         for _ in 0..steps {
-            sac.update(|b| Ok(b.truth.clone()))?;
+            sac.update(reward)?;
         }
         times.push(t.elapsed().as_secs_f64() * 1e3 / steps as f64);
     }

@@ -30,7 +30,7 @@ pub struct Actors {
 
 impl Actors {
     /// The next live actor in turn.
-    pub fn next(&mut self) -> u32 {
+    pub fn next_live(&mut self) -> u32 {
         let live: Vec<u32> = self
             .last_seen
             .iter()
@@ -77,7 +77,7 @@ pub async fn retry(
         if p.row.eval_episodes > 0 || p.sent.elapsed() < EVAL_TIMEOUT {
             continue;
         }
-        p.request.actor = actors.next();
+        p.request.actor = actors.next_live();
         p.tries += 1;
         p.sent = Instant::now();
         asked += 1;

@@ -317,12 +317,21 @@ impl Feedback {
                 let chosen = if sampler == Sampler::Uniform {
                     (0..k.min(candidates.len())).collect()
                 } else {
-                    let segs: Vec<(Segment, Segment)> = candidates
-                        .iter()
-                        .map(|(a, b)| (seg_of(a), seg_of(b)))
-                        .collect();
+                    // One segment per distinct trajectory: the ensemble judges each once.
+                    let mut index: HashMap<*const Candidate, usize> = HashMap::new();
+                    let mut segs: Vec<Segment> = Vec::new();
+                    let mut sides = Vec::with_capacity(candidates.len());
+                    for (a, b) in &candidates {
+                        let mut at = |c: &Arc<Candidate>| {
+                            *index.entry(Arc::as_ptr(c)).or_insert_with(|| {
+                                segs.push(seg_of(c));
+                                segs.len() - 1
+                            })
+                        };
+                        sides.push((at(a), at(b)));
+                    }
                     let pairs: Vec<(&Segment, &Segment)> =
-                        segs.iter().map(|(a, b)| (a, b)).collect();
+                        sides.iter().map(|&(a, b)| (&segs[a], &segs[b])).collect();
                     let probs = model.preference_probs(&pairs)?;
                     select(sampler, &probs, candidates.len(), k)
                 };
@@ -353,9 +362,13 @@ impl Feedback {
         done
     }
 
-    /// Take a job's result: a session's queries to send, or a trained ensemble (returned
-    /// for the reward; the first one ends the pretraining).
-    pub fn finish(&mut self, done: JobDone) -> Result<(Vec<Query>, Option<Arc<RewardModel>>)> {
+    /// Take a job's result at `now` env steps: a session's queries to send, or a trained
+    /// ensemble (returned for the reward; the first one ends the pretraining).
+    pub fn finish(
+        &mut self,
+        done: JobDone,
+        now: u64,
+    ) -> Result<(Vec<Query>, Option<Arc<RewardModel>>)> {
         match done {
             JobDone::Chosen {
                 session,
@@ -365,7 +378,9 @@ impl Feedback {
             } => {
                 let queries = self.ask(session, env_steps, sampler, &pairs)?;
                 self.counters.sessions = session;
-                while self.counters.next_session_at <= env_steps {
+                // NOTE: a session that waited for a training comes late; the next one is
+                // an interval after it, not at once.
+                while self.counters.next_session_at <= env_steps.max(now) {
                     self.counters.next_session_at += self.cfg.feedback_interval;
                 }
                 tracing::info!(

@@ -742,14 +742,30 @@ impl RewardModel {
     }
 
     /// `[member][pair]` P[second > first], all pairs through each member in batches.
+    /// A segment in several pairs (the same reference) goes through the members once.
     pub fn preference_probs(&self, pairs: &[(&Segment, &Segment)]) -> Result<Vec<Vec<f32>>> {
-        let segs: Vec<&Segment> = pairs.iter().flat_map(|(a, b)| [*a, *b]).collect();
-        let sums = self.segment_returns(&segs)?;
+        // NOTE: candidates are drawn with replacement from the annotation buffer: most
+        // trajectories come up in several pairs, and their returns are what costs.
+        let mut index: std::collections::HashMap<*const Segment, usize> = Default::default();
+        let mut unique: Vec<&Segment> = Vec::new();
+        let mut sides: Vec<(usize, usize)> = Vec::with_capacity(pairs.len());
+        for &(a, b) in pairs {
+            let mut side = [0usize; 2];
+            for (k, seg) in [a, b].into_iter().enumerate() {
+                side[k] = *index.entry(seg as *const Segment).or_insert_with(|| {
+                    unique.push(seg);
+                    unique.len() - 1
+                });
+            }
+            sides.push((side[0], side[1]));
+        }
+        let sums = self.segment_returns(&unique)?;
         Ok(sums
             .iter()
             .map(|s| {
-                s.chunks_exact(2)
-                    .map(|p| (1.0 / (1.0 + ((p[0] - p[1]) as f64).exp())) as f32)
+                sides
+                    .iter()
+                    .map(|&(a, b)| (1.0 / (1.0 + ((s[a] - s[b]) as f64).exp())) as f32)
                     .collect()
             })
             .collect())

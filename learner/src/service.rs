@@ -114,24 +114,31 @@ impl Teachers {
     }
 }
 
-/// Store an answer and acknowledge it.
-async fn take_answer(
+/// Store `first` and every answer already waiting (each committed before any is
+/// acknowledged), then acknowledge them, one message per teacher.
+async fn take_answers(
     session: &Session,
     keys: &Keys,
     f: &mut Feedback,
-    a: pbrl_common::wire::Answer,
+    first: pbrl_common::wire::Answer,
+    inbox: &mut Option<Inbox<pbrl_common::wire::Answer>>,
 ) -> Result<()> {
-    // NOTE: `answer` commits the label before it returns; only then the acknowledgement.
-    if let Answered::Ack(ack) = f.answer(&a)? {
-        let key = keys.answer_ack(&ack.teacher_id);
-        put_message(
-            session,
-            keys,
-            key,
-            &Body::AnswerAck(ack),
-            Priority::DataHigh,
-        )
-        .await?;
+    let mut acks: std::collections::BTreeMap<String, Vec<u64>> = Default::default();
+    let mut next = Some(first);
+    while let Some(a) = next {
+        // NOTE: `answer` commits the label before it returns; only then the acknowledgement.
+        if let Answered::Ack(ack) = f.answer(&a)? {
+            acks.entry(ack.teacher_id).or_default().extend(ack.queries);
+        }
+        next = inbox.as_mut().and_then(|i| i.try_next());
+    }
+    for (teacher_id, queries) in acks {
+        let key = keys.answer_ack(&teacher_id);
+        let ack = Body::AnswerAck(pbrl_common::wire::AnswerAck {
+            teacher_id,
+            queries,
+        });
+        put_message(session, keys, key, &ack, Priority::DataHigh).await?;
     }
     Ok(())
 }
@@ -291,7 +298,7 @@ pub async fn run(
             }
             a = next_of(&mut answers) => {
                 if let Some(f) = feedback.as_mut() {
-                    take_answer(&session, &keys, f, a?).await?;
+                    take_answers(&session, &keys, f, a?, &mut answers).await?;
                     // NOTE: the session may be answered now: training can start.
                     f.start(p.env_steps, false)?;
                 }
@@ -304,7 +311,7 @@ pub async fn run(
                 }
             } => {
                 if let Some(f) = feedback.as_mut() {
-                    let (queries, model) = f.finish(done?)?;
+                    let (queries, model) = f.finish(done?, p.env_steps)?;
                     teachers.ask(&queries).await?;
                     if let Some(m) = model {
                         install(m, &mut reward, &mut backbone)?;
@@ -456,7 +463,7 @@ pub async fn run(
             } else {
                 let request = EvalRequest {
                     id: p.env_steps,
-                    actor: actors.next(),
+                    actor: actors.next_live(),
                     weights: match published.take() {
                         Some(w) => w,
                         None => backbone.weights(&cfg, p.version, p.env_steps)?,
@@ -505,7 +512,7 @@ pub async fn run(
             r = eval_results.next() => curve.complete(r?)?,
             a = next_of(&mut answers) => {
                 if let Some(f) = feedback.as_mut() {
-                    take_answer(&session, &keys, f, a?).await?;
+                    take_answers(&session, &keys, f, a?, &mut answers).await?;
                 }
             }
             _ = tick.tick() => {
@@ -513,6 +520,14 @@ pub async fn run(
             }
             m = trajectories.next() => { m?; }
         }
+    }
+    // Answers already received are stored (the teacher forgets them once acknowledged;
+    // the queries still open are asked again by a resumed run).
+    if let (Some(f), Some(first)) = (
+        feedback.as_mut(),
+        answers.as_mut().and_then(|i| i.try_next()),
+    ) {
+        take_answers(&session, &keys, f, first, &mut answers).await?;
     }
     // The final checkpoint (a stop, or the end): pending rows stay pending in it when
     // stopped, so a resumed run writes them.
@@ -588,14 +603,17 @@ async fn sync_feedback(
 ) -> Result<()> {
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     while let Some(done) = tokio::task::block_in_place(|| f.start(env_steps, true))? {
-        let (queries, model) = f.finish(done)?;
+        let (queries, model) = f.finish(done, env_steps)?;
         teachers.ask(&queries).await?;
         if let Some(m) = model {
             install(m, reward, backbone)?;
         }
         while f.open() > 0 {
             tokio::select! {
-                a = next_of(answers) => take_answer(session, keys, f, a?).await?,
+                a = next_of(answers) => {
+                    let a = a?;
+                    take_answers(session, keys, f, a, answers).await?
+                }
                 _ = tick.tick() => teachers.ask(&f.retry()?).await?,
             }
         }
