@@ -25,6 +25,8 @@ fn pref_point(run: &str, total: u64, dir: &std::path::Path) -> LearnerConfig {
     cfg.reward = RewardSource::Pref;
     cfg.actors = 1;
     cfg.out = Some(dir.to_path_buf());
+    // NOTE: the first row (500) comes before the first session (600): still pretraining.
+    cfg.log_every = 500;
     let p = &mut cfg.pref;
     p.unsup_steps = 600;
     p.feedback_interval = 900;
