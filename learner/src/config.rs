@@ -62,7 +62,7 @@ pub struct PrefConfig {
     /// Raw observations the state-entropy bonus compares with (the newest).
     #[arg(long, default_value_t = 10_000)]
     pub knn_pool: usize,
-    /// Trajectories kept for queries (the annotation buffer, newest first out last).
+    /// Trajectories kept for queries (the annotation buffer; the oldest leave first).
     #[arg(long, default_value_t = 10_000)]
     pub annotation_capacity: usize,
     /// An unanswered query is asked again after this many seconds.
@@ -72,9 +72,6 @@ pub struct PrefConfig {
     /// label store as expired and still counts against the budget.
     #[arg(long, default_value_t = 0)]
     pub query_expiry_s: u64,
-    /// Send each query's replay data (what a person needs to watch it).
-    #[arg(long)]
-    pub query_replay: bool,
     #[command(flatten)]
     pub model: RewardModelConfig,
 }
