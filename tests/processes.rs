@@ -74,6 +74,8 @@ fn a_learner_stopped_for_30_s_keeps_its_actors_and_loses_nothing() {
             "2",
             "--task",
             "point",
+            "--reward",
+            "truth",
             "--steps",
             "120000",
             "--log-every",
@@ -146,14 +148,15 @@ fn a_learner_stopped_for_30_s_keeps_its_actors_and_loses_nothing() {
     for id in 0..2 {
         let log = std::fs::read_to_string(dir.path().join(format!("actor{id}.log"))).unwrap();
         for sign in ["expired", "Unable to push", "Closing transport"] {
-            let before_stop: Vec<&str> = log
+            let seen: Vec<&str> = log
                 .lines()
                 .filter(|l| l.contains(sign) && !l.contains("the learner says stop"))
                 .collect();
-            // NOTE: the session's own close at the end also says "Closing transport";
-            // only one (after the stop) is allowed.
-            let allowed = usize::from(sign == "Closing transport");
-            assert!(before_stop.len() <= allowed, "actor {id}: {before_stop:#?}");
+            // NOTE: the end closes the actor's transport too, and says "Closing transport"
+            // once or twice (the learner's exit and the actor's own close, as they race);
+            // none may come from the pause.
+            let allowed = if sign == "Closing transport" { 2 } else { 0 };
+            assert!(seen.len() <= allowed, "actor {id}: {seen:#?}");
         }
         assert!(
             log.contains("the learner says stop"),
