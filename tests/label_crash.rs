@@ -4,7 +4,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::Duration;
 
 use pbrl_common::bus::{Inbox, MessagePublisher};
@@ -15,28 +15,12 @@ use pbrl_learner::labels::LabelStore;
 use pbrl_teacher::scripted::{Scripted, ScriptedConfig, TeacherKind};
 use pbrl_teacher::service::Teacher;
 
-fn spawn(args: &[String], log: &Path) -> Child {
-    let file = std::fs::File::options()
-        .create(true)
-        .append(true)
-        .open(log)
-        .unwrap();
-    Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .env("RUST_LOG", "warn,pbrl=info,pbrl_learner=info")
-        .stdout(Stdio::null())
-        .stderr(file)
-        .spawn()
-        .expect("the pbrl binary runs")
-}
+mod support;
 
-fn signal(child: &Child, sig: &str) {
-    let ok = Command::new("kill")
-        .args([sig, &child.id().to_string()])
-        .status()
-        .unwrap()
-        .success();
-    assert!(ok, "kill {sig}");
+use support::signal;
+
+fn spawn(args: &[String], log: &Path) -> Child {
+    support::spawn_pbrl(args, log, "warn,pbrl=info,pbrl_learner=info")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]

@@ -3,32 +3,21 @@
 //! continued: the actors keep their sessions, the run goes on, nothing is lost.
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 
-fn spawn(args: &[&str], log: &Path) -> Child {
-    let file = std::fs::File::create(log).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        // NOTE: zenoh's transport at debug says when a link's lease expires or a push
-        // gives up; pbrl's own lines at info.
-        .env(
-            "RUST_LOG",
-            "warn,pbrl=info,pbrl_actor=info,pbrl_learner=info,zenoh_transport=debug",
-        )
-        .stdout(Stdio::null())
-        .stderr(file)
-        .spawn()
-        .expect("the pbrl binary runs")
-}
+mod support;
 
-fn signal(child: &Child, sig: &str) {
-    let ok = Command::new("kill")
-        .args([sig, &child.id().to_string()])
-        .status()
-        .unwrap()
-        .success();
-    assert!(ok, "kill {sig}");
+use support::signal;
+
+fn spawn(args: &[&str], log: &Path) -> Child {
+    // NOTE: zenoh's transport at debug says when a link's lease expires or a push gives
+    // up; pbrl's own lines at info.
+    support::spawn_pbrl(
+        args,
+        log,
+        "warn,pbrl=info,pbrl_actor=info,pbrl_learner=info,zenoh_transport=debug",
+    )
 }
 
 /// Wait for `child` to exit, at most `secs` seconds; true if it exited 0.

@@ -170,3 +170,33 @@ pub async fn put_all(session: &zenoh::Session, key: &str, payloads: &[Vec<u8>]) 
         raw.put(bytes.clone()).await.unwrap();
     }
 }
+
+/// A `pbrl` process with `args`, its log (stderr) appended to `log` at `rust_log`.
+pub fn spawn_pbrl<S: AsRef<std::ffi::OsStr>>(
+    args: &[S],
+    log: &std::path::Path,
+    rust_log: &str,
+) -> std::process::Child {
+    let file = std::fs::File::options()
+        .create(true)
+        .append(true)
+        .open(log)
+        .unwrap();
+    std::process::Command::new(env!("CARGO_BIN_EXE_pbrl"))
+        .args(args)
+        .env("RUST_LOG", rust_log)
+        .stdout(std::process::Stdio::null())
+        .stderr(file)
+        .spawn()
+        .expect("the pbrl binary runs")
+}
+
+/// Send `sig` (`-STOP`, `-KILL`, ...) to `child`.
+pub fn signal(child: &std::process::Child, sig: &str) {
+    let ok = std::process::Command::new("kill")
+        .args([sig, &child.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill {sig}");
+}
