@@ -92,6 +92,7 @@ impl Backbone {
             Backbone::Sac(sac) => {
                 let was_random = sac.env_steps < sac.cfg.random_steps;
                 sac.observe(&t);
+                let random_ended = was_random && sac.env_steps >= sac.cfg.random_steps;
                 if let Some(e) = reward.entropy.as_mut().filter(|_| reward.model.is_none()) {
                     e.add(&t.obs[..t.steps() * t.obs_dim as usize]);
                 }
@@ -117,11 +118,7 @@ impl Backbone {
                     publication.episodes
                         >= self.share(cfg, publication.env_steps) * cfg.actors as u64
                 } else {
-                    let Backbone::Sac(sac) = &*self else {
-                        unreachable!("matched above")
-                    };
-                    publication.since >= cfg.publish_every
-                        || (was_random && sac.env_steps >= sac.cfg.random_steps)
+                    publication.since >= cfg.publish_every || random_ended
                 };
             }
             Backbone::Ppo(ppo, rollout) => {

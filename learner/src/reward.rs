@@ -147,11 +147,9 @@ impl TrainReward {
                 RewardSource::Task => task,
                 RewardSource::Pref | RewardSource::Decoupled => {
                     let (n, o, a) = (tr.steps(), tr.obs_dim as usize, tr.act_dim as usize);
-                    let obs = Tensor::from_slice(&tr.obs[..n * o], (n, o), &Device::Cpu)?;
-                    let act = Tensor::from_slice(&tr.actions, (n, a), &Device::Cpu)?;
+                    let rows = &tr.obs[..n * o];
                     let pretraining = self.pretraining();
                     let learnt = if pretraining {
-                        let rows = &tr.obs[..n * o];
                         let e = self
                             .entropy
                             .as_mut()
@@ -159,6 +157,8 @@ impl TrainReward {
                         // NOTE: PPO's rollout states are added to the pool after this.
                         e.reward(rows, false)
                     } else {
+                        let obs = Tensor::from_slice(rows, (n, o), &Device::Cpu)?;
+                        let act = Tensor::from_slice(&tr.actions, (n, a), &Device::Cpu)?;
                         self.learnt(&obs, &act)?.flatten_all()?.to_vec1::<f32>()?
                     };
                     if self.source == RewardSource::Decoupled && !pretraining {
