@@ -79,8 +79,11 @@ fn labelled(ts: &[Trajectory], n: usize, seed: u64) -> Vec<Labelled> {
 fn the_ensemble_taught_by_the_oracle_ranks_held_out_pairs() {
     let train = episodes(200, 1);
     let held_out = episodes(200, 2);
+    // NOTE: one training, unbounded (max_pairs 0): what 300 labels can teach. The run's
+    // bound spreads the same work over its sessions.
     let cfg = RewardModelConfig {
         hidden: vec![64, 64],
+        max_pairs: 0,
         ..RewardModelConfig::default()
     };
     let mut model = RewardModel::new(cfg, POINT_OBS, POINT_ACT).unwrap();

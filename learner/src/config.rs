@@ -222,7 +222,8 @@ impl LearnerConfig {
 /// value.
 pub type Setting = (&'static str, &'static str, serde_json::Value);
 
-/// The authors' network sizes (`--preset paper`).
+/// The authors' network sizes, and their ensemble training unbounded by `max_pairs`
+/// (`--preset paper`).
 pub fn paper_preset() -> Vec<Setting> {
     use serde_json::json;
     vec![
@@ -234,6 +235,7 @@ pub fn paper_preset() -> Vec<Setting> {
             "/pref/model/hidden",
             json!([256, 256, 256]),
         ),
+        ("reward_max_pairs", "/pref/model/max_pairs", json!(0)),
     ]
 }
 

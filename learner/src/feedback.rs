@@ -7,8 +7,9 @@
 //! model it has, and answers are used at the next training of the ensemble, which starts
 //! once the session's queries are all answered (or the next session is due). Choosing
 //! queries (the ensemble's predictions on every candidate pair) and training run on a
-//! blocking thread ([`Feedback::job`]), one at a time, so trajectories keep flowing; the
-//! deterministic mode runs both in place instead.
+//! thread of their own at a lower priority ([`Feedback::job`]), one at a time, so
+//! trajectories keep flowing and the policy's updates keep their CPU; the deterministic
+//! mode runs both in place instead.
 //!
 //! The label store is the truth about labels: query and trajectory ids come from it (never
 //! reused across restarts), D is rebuilt from it on resume, and the queries open in it
@@ -115,9 +116,11 @@ pub struct Feedback {
     /// The newest trained ensemble (untrained until the first session's answers).
     model: Arc<RewardModel>,
     in_flight: BTreeMap<u64, InFlight>,
-    job: Option<tokio::task::JoinHandle<Result<JobDone>>>,
+    job: Option<tokio::sync::oneshot::Receiver<Result<JobDone>>>,
     rng: ChaCha8Rng,
     pub counters: Counters,
+    /// The budget was found spent ([`Feedback::frozen`]).
+    frozen: std::cell::Cell<bool>,
 }
 
 impl Feedback {
@@ -145,6 +148,7 @@ impl Feedback {
             model: Arc::new(model),
             in_flight: BTreeMap::new(),
             job: None,
+            frozen: std::cell::Cell::new(false),
             // NOTE: its own stream of the run's seed, apart from the backbone's.
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f00d_0000_0001),
             counters: Counters {
@@ -226,9 +230,14 @@ impl Feedback {
         self.model.trained().then(|| self.model.clone())
     }
 
-    /// The budget is spent: the ensemble is frozen.
+    /// The budget is spent: the ensemble is frozen. (Asked queries never leave the store,
+    /// so once true it stays true, and the store is not counted again.)
     pub fn frozen(&self) -> Result<bool> {
-        Ok(self.store.counts()?.asked >= self.cfg.max_feedback)
+        if !self.frozen.get() {
+            self.frozen
+                .set(self.store.counts()?.asked >= self.cfg.max_feedback);
+        }
+        Ok(self.frozen.get())
     }
 
     /// Whether a background job is running.
@@ -348,16 +357,25 @@ impl Feedback {
         if inline {
             return Ok(Some(work()?));
         }
-        self.job = Some(tokio::task::spawn_blocking(work));
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        std::thread::Builder::new()
+            .name("pbrl-feedback".into())
+            .spawn(move || {
+                lower_priority();
+                // NOTE: a receiver gone means the learner is shutting down; nothing to tell.
+                let _ = tx.send(work());
+            })
+            .context("starting the feedback job's thread")?;
+        self.job = Some(rx);
         Ok(None)
     }
 
     /// Wait for the background job (cancel-safe; only while [`Feedback::busy`]).
     pub async fn job(&mut self) -> Result<JobDone> {
-        let Some(handle) = self.job.as_mut() else {
+        let Some(rx) = self.job.as_mut() else {
             return std::future::pending().await;
         };
-        let done = handle.await.context("the feedback job died")?;
+        let done = rx.await.context("the feedback job died")?;
         self.job = None;
         done
     }
@@ -405,6 +423,7 @@ impl Feedback {
                 tracing::info!(
                     labels,
                     epochs = stats.epochs,
+                    pairs = stats.pairs,
                     accuracy = format!("{:.3}", stats.accuracy),
                     accuracy_on_new = format!("{accuracy_new:.3}"),
                     "reward ensemble trained"
@@ -592,6 +611,25 @@ impl Feedback {
 }
 
 /// The soft target of a preference: P[second preferred].
+/// Lower the calling thread's scheduling priority to nice 10 (Linux; elsewhere nothing):
+/// the feedback jobs (choosing queries, training the ensemble) then run on the CPU that the
+/// learner's updates and the actors leave, instead of taking it from them. A session whose
+/// job waits for CPU comes later; the env steps do not slow down.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid and setpriority only read and set this thread's scheduling
+        // priority; no memory is shared with them.
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 10) };
+        if rc != 0 {
+            tracing::debug!(
+                error = %std::io::Error::last_os_error(),
+                "could not lower the feedback job's priority"
+            );
+        }
+    }
+}
+
 fn target(p: Preference) -> f32 {
     match p {
         Preference::First => 0.0,
