@@ -191,6 +191,7 @@ async fn bad_messages_on_every_key_are_dropped_counted_and_the_receivers_keep_go
             weights: w,
             seeds: vec![1, 2],
             sampled: true,
+            steps: false,
         }))
     };
     let mut short = weights(6);
@@ -225,6 +226,7 @@ async fn bad_messages_on_every_key_are_dropped_counted_and_the_receivers_keep_go
                 ..Default::default()
             }],
             sampled: Vec::new(),
+            steps: Vec::new(),
         })
     };
     let bad = bad_payloads(run, &result(1.0), None, Some(result(f32::NAN)), stop());

@@ -128,6 +128,7 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
             weights: w,
             seeds: vec![1],
             sampled: false,
+            steps: false,
         }))
     };
     let result = |x: f32| {
@@ -140,6 +141,7 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
                 ..Default::default()
             }],
             sampled: Vec::new(),
+            steps: Vec::new(),
         })
     };
     // (key, bad payloads, whether the learner receives it)

@@ -159,6 +159,14 @@ async fn preference_return(reward: RewardSource) -> (f64, f64) {
         last.eval_return_human,
         last.eval_success_rate
     );
+    // The learnt reward against the truth on the evaluation's episodes (their steps come
+    // back with the evaluation): it tracks the episodes' returns.
+    eprintln!(
+        "r_hat against r on the evaluation: per step {:.3}, per episode {:.3}",
+        last.rhat_step_corr, last.rhat_return_corr
+    );
+    assert!(last.rhat_step_corr.is_finite(), "{last:?}");
+    assert!(last.rhat_return_corr > 0.0, "{last:?}");
     (last.eval_return_human, last.eval_return_truth)
 }
 

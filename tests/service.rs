@@ -4,6 +4,7 @@ mod support;
 
 use std::time::Duration;
 
+use pbrl_actor::point::{POINT_ACT, POINT_OBS};
 use pbrl_actor::runner::{self, ActorConfig, Task};
 use pbrl_actor::WorldConfig;
 use pbrl_common::bus::WeightsClient;
@@ -210,10 +211,24 @@ async fn every_curve_row_holds_a_deterministic_evaluation_of_its_weights() {
         weights: w,
         seeds: vec![service::EVAL_SEED_BASE, service::EVAL_SEED_BASE + 1],
         sampled: true,
+        steps: true,
     };
     let a = runner::evaluate(None, &request, 0).unwrap();
     let b = runner::evaluate(None, &request, 1).unwrap();
     assert_eq!(a.episodes, b.episodes);
+    // The steps of each mean-action episode, whose truth adds up to its return.
+    assert_eq!(a.steps.len(), 2);
+    for (s, o) in a.steps.iter().zip(&a.episodes) {
+        assert_eq!(s.truth.len(), o.steps as usize);
+        assert_eq!(s.obs.len(), s.truth.len() * POINT_OBS);
+        assert_eq!(s.actions.len(), s.truth.len() * POINT_ACT);
+        let sum: f32 = s.truth.iter().sum();
+        assert!(
+            (sum - o.return_truth).abs() < 1e-3,
+            "{sum} vs {}",
+            o.return_truth
+        );
+    }
     assert_eq!(a.sampled, b.sampled, "sampled noise follows from the seed");
     assert_eq!(a.sampled.len(), 2);
     assert_ne!(

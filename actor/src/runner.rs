@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use pbrl_common::bus::{wait_until, Inbox, MessagePublisher, TrajectoryPublisher, WeightsClient};
-use pbrl_common::wire::{Body, EvalRequest, EvalResult, Weights};
+use pbrl_common::wire::{Body, EvalRequest, EvalResult, EvalSteps, Weights};
 use pbrl_common::{Keys, Trajectory};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -121,13 +121,23 @@ pub fn evaluate(
 ) -> Result<EvalResult> {
     let policy = Policy::from_weights(&req.weights)?;
     let mut world = world;
+    let mut steps = Vec::new();
     let mut run = |deterministic: bool| {
         req.seeds
             .iter()
             .map(|&seed| {
                 // NOTE: the mean action draws no noise; the generator is then unused.
                 let mut rng = noise(seed);
-                Ok(episode(world.as_deref_mut(), &policy, seed, &mut rng, deterministic)?.outcome)
+                let t = episode(world.as_deref_mut(), &policy, seed, &mut rng, deterministic)?;
+                if deterministic && req.steps {
+                    let n = t.actions.len() / t.act_dim.max(1) as usize;
+                    steps.push(EvalSteps {
+                        obs: t.obs[..n * t.obs_dim as usize].to_vec(),
+                        actions: t.actions.clone(),
+                        truth: t.rewards.iter().map(|r| r.truth).collect(),
+                    });
+                }
+                Ok(t.outcome)
             })
             .collect::<Result<Vec<_>>>()
     };
@@ -139,6 +149,7 @@ pub fn evaluate(
         version: policy.version,
         episodes,
         sampled,
+        steps,
     })
 }
 

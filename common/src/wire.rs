@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 4;
+pub const WIRE_FORMAT: u16 = 5;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -85,6 +85,20 @@ pub struct EvalRequest {
     pub seeds: Vec<u64>,
     /// Also run every seed with sampled actions (the policy as it trains).
     pub sampled: bool,
+    /// Also send each mean-action episode's steps ([`EvalSteps`]): a learner with a learnt
+    /// reward compares it with the ground truth on them.
+    pub steps: bool,
+}
+
+/// One evaluation episode's steps: what a learnt reward reads and the ground truth.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EvalSteps {
+    /// One observation per step (the one the action was taken in), flattened.
+    pub obs: Vec<f32>,
+    /// One action per step, flattened.
+    pub actions: Vec<f32>,
+    /// The ground-truth reward r of each step.
+    pub truth: Vec<f32>,
 }
 
 /// The outcome of each evaluation episode, in the order of the request's seeds.
@@ -98,6 +112,8 @@ pub struct EvalResult {
     pub episodes: Vec<Outcome>,
     /// With sampled actions, the same seeds (empty unless asked for).
     pub sampled: Vec<Outcome>,
+    /// The steps of each mean-action episode (empty unless asked for).
+    pub steps: Vec<EvalSteps>,
 }
 
 /// The learner's word that the run is over: actors stop.
@@ -241,7 +257,7 @@ pub enum WireError {
     Format { found: u16, expected: u16 },
     #[error("message for run {found:?}, this process is in run {expected:?}")]
     Run { found: String, expected: String },
-    #[error("weights field {field} has {found} numbers, expected {expected}")]
+    #[error("field {field} has {found} numbers, expected {expected}")]
     Shape {
         field: String,
         found: usize,
@@ -324,6 +340,35 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                 if sums.iter().any(|x| !x.is_finite()) {
                     return Err(WireError::NonFinite {
                         field: format!("episodes[{k}] returns"),
+                    });
+                }
+            }
+            if !r.steps.is_empty() && r.steps.len() != r.episodes.len() {
+                return Err(WireError::Shape {
+                    field: "steps".into(),
+                    found: r.steps.len(),
+                    expected: r.episodes.len(),
+                });
+            }
+            for (k, e) in r.steps.iter().enumerate() {
+                let n = e.truth.len().max(1);
+                for (name, xs) in [("obs", &e.obs), ("actions", &e.actions)] {
+                    if xs.len() % n != 0 || xs.is_empty() != e.truth.is_empty() {
+                        return Err(WireError::Shape {
+                            field: format!("steps[{k}].{name}"),
+                            found: xs.len(),
+                            expected: xs.len().div_ceil(n) * e.truth.len(),
+                        });
+                    }
+                }
+                if e.obs
+                    .iter()
+                    .chain(&e.actions)
+                    .chain(&e.truth)
+                    .any(|x| !x.is_finite())
+                {
+                    return Err(WireError::NonFinite {
+                        field: format!("steps[{k}]"),
                     });
                 }
             }
@@ -463,6 +508,45 @@ mod tests {
         assert!(matches!(
             decode("r", &vec![0u8; MAX_MESSAGE_BYTES + 1]),
             Err(WireError::TooLarge { .. })
+        ));
+    }
+
+    #[test]
+    fn evaluation_steps_round_trip_and_bad_ones_are_refused() {
+        // Two episodes of 3 steps, observation 2, action 1.
+        let steps = |obs: usize, act: usize, truth: usize| EvalSteps {
+            obs: vec![0.5; obs],
+            actions: vec![0.1; act],
+            truth: vec![-1.0; truth],
+        };
+        let result = |s: Vec<EvalSteps>| {
+            Body::EvalResult(EvalResult {
+                id: 1,
+                actor: 0,
+                version: 3,
+                episodes: vec![Outcome::default(); 2],
+                sampled: Vec::new(),
+                steps: s,
+            })
+        };
+        let good = result(vec![steps(6, 3, 3), steps(6, 3, 3)]);
+        assert_eq!(decode("r", &encode("r", &good)).unwrap(), good);
+        let none = result(Vec::new());
+        assert_eq!(decode("r", &encode("r", &none)).unwrap(), none);
+        let refused = |s: Vec<EvalSteps>| decode("r", &encode("r", &result(s))).unwrap_err();
+        // One episode's steps for two episodes.
+        let e = refused(vec![steps(6, 3, 3)]);
+        assert!(e.to_string().contains("steps"), "{e}");
+        // Observations that are not whole steps; actions with no steps.
+        let e = refused(vec![steps(6, 3, 3), steps(7, 3, 3)]);
+        assert!(e.to_string().contains("steps[1].obs"), "{e}");
+        let e = refused(vec![steps(6, 3, 3), steps(0, 3, 0)]);
+        assert!(e.to_string().contains("steps[1].actions"), "{e}");
+        let mut nan = steps(6, 3, 3);
+        nan.truth[2] = f32::NAN;
+        assert!(matches!(
+            decode("r", &encode("r", &result(vec![steps(6, 3, 3), nan]))),
+            Err(WireError::NonFinite { .. })
         ));
     }
 

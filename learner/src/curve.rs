@@ -260,7 +260,9 @@ impl Curve {
     }
 
     /// Fill in an evaluation's figures, then write every row that is complete in order.
-    pub fn complete(&mut self, r: EvalResult) -> Result<()> {
+    /// `tracking`: the learnt reward's correlations with the truth on the evaluation's
+    /// episodes (per step, per episode sum), when there is one.
+    pub fn complete(&mut self, r: EvalResult, tracking: Option<(f64, f64)>) -> Result<()> {
         let Some(p) = self.pending.iter_mut().find(|p| p.request.id == r.id) else {
             tracing::debug!(id = r.id, "an evaluation answered twice or after its row");
             return Ok(());
@@ -306,6 +308,10 @@ impl Curve {
         p.row.eval_sampled_success_rate = mean(&r.sampled, success);
         p.row.eval_sampled_return_human = mean(&r.sampled, human);
         p.row.eval_version = r.version;
+        if let Some((step, sum)) = tracking {
+            p.row.rhat_step_corr = step;
+            p.row.rhat_return_corr = sum;
+        }
         self.write_ready()
     }
 

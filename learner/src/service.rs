@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use pbrl_common::bus::{put_message, Inbox, MessagePublisher, WeightsServer};
-use pbrl_common::wire::{Body, EvalRequest, Query, Stop, Weights};
+use pbrl_common::wire::{Body, EvalRequest, EvalResult, EvalSteps, Query, Stop, Weights};
 use pbrl_common::Keys;
 use zenoh::qos::Priority;
 use zenoh::Session;
@@ -58,23 +58,45 @@ pub struct Summary {
     pub weights: Option<Weights>,
 }
 
-/// The newest `n` trajectories of the annotation buffer: r_hat against the truth (Pearson,
-/// per step and per episode sum), for the curve.
-fn rhat_tracking(model: &RewardModel, f: &Feedback, n: usize) -> Result<(f64, f64)> {
-    let buffer = f.buffer();
+/// How well `model` tracks the ground truth on an evaluation's episodes: the Pearson
+/// correlation of r_hat with r per step and per episode sum. Episodes whose lengths do not
+/// agree with the model are left out (with a warning); NaN when none is left.
+fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<(f64, f64)> {
     let (mut step_hat, mut step_true, mut sum_hat, mut sum_true) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    for c in buffer.iter().skip(buffer.len().saturating_sub(n)) {
-        let r = model.predict(&c.obs, &c.actions)?;
+    for e in episodes {
+        let n = e.truth.len();
+        if e.obs.len() != n * model.obs_dim() || e.actions.len() != n * model.act_dim() {
+            tracing::warn!(
+                steps = n,
+                obs = e.obs.len(),
+                actions = e.actions.len(),
+                "an evaluation episode's steps do not fit the reward model; left out"
+            );
+            continue;
+        }
+        let r = model.predict(&e.obs, &e.actions)?;
         sum_hat.push(r.iter().map(|x| *x as f64).sum());
-        sum_true.push(c.truth.iter().map(|x| *x as f64).sum());
+        sum_true.push(e.truth.iter().map(|x| *x as f64).sum());
         step_hat.extend(r.iter().map(|x| *x as f64));
-        step_true.extend(c.truth.iter().map(|x| *x as f64));
+        step_true.extend(e.truth.iter().map(|x| *x as f64));
     }
     Ok((
         correlation(&step_hat, &step_true),
         correlation(&sum_hat, &sum_true),
     ))
+}
+
+/// An evaluation came back: its row gets the evaluation and, with a learnt reward, how well
+/// that reward tracks the truth on the evaluation's episodes.
+fn evaluated(curve: &mut Curve, reward: &TrainReward, r: EvalResult) -> Result<()> {
+    let tracking = match &reward.model {
+        Some(m) if !r.steps.is_empty() => {
+            Some(tokio::task::block_in_place(|| rhat_tracking(m, &r.steps))?)
+        }
+        _ => None,
+    };
+    curve.complete(r, tracking)
 }
 
 /// The learnt reward takes over: the first trained ensemble ends the pretraining.
@@ -293,7 +315,7 @@ pub async fn run(
         let msg = tokio::select! {
             _ = &mut shutdown => { stopped = true; break }
             r = eval_results.next() => {
-                curve.complete(r?)?;
+                evaluated(&mut curve, &reward, r?)?;
                 continue;
             }
             a = next_of(&mut answers) => {
@@ -452,11 +474,6 @@ pub async fn run(
                 row.reward_accuracy_new = f.counters.accuracy_new;
                 row.retried_messages += f.counters.retried_queries;
                 row.dropped_messages += f.counters.unknown_answers;
-                if let Some(m) = &reward.model {
-                    let (step, ret) = tokio::task::block_in_place(|| rhat_tracking(m, f, 30))?;
-                    row.rhat_step_corr = step;
-                    row.rhat_return_corr = ret;
-                }
             }
             if cfg.eval_episodes == 0 {
                 curve.write(row)?;
@@ -470,6 +487,7 @@ pub async fn run(
                     },
                     seeds: seeds.clone(),
                     sampled: cfg.eval_sampled,
+                    steps: feedback.is_some(),
                 };
                 evaluation::ask(&session, &keys, &mut curve, row, request).await?;
             }
@@ -509,7 +527,7 @@ pub async fn run(
     while !stopped && !curve.pending.is_empty() {
         tokio::select! {
             _ = &mut shutdown => break,
-            r = eval_results.next() => curve.complete(r?)?,
+            r = eval_results.next() => evaluated(&mut curve, &reward, r?)?,
             a = next_of(&mut answers) => {
                 if let Some(f) = feedback.as_mut() {
                     take_answers(&session, &keys, f, a?, &mut answers).await?;
