@@ -31,11 +31,15 @@ pub struct PrefConfig {
     #[arg(long, default_value_t = 15.0)]
     pub lambda0: f64,
     /// Decoupled: how lambda_t decays: linear, lambda_0 (T - t) / T, or exponential,
-    /// lambda_0 (1 - rho)^t (t: env steps so far, T: the run's env steps).
-    #[arg(long, value_enum, default_value = "linear")]
+    /// lambda_0 (1 - rho)^t (t: env steps so far, T: the run's env steps). The default is
+    /// exponential for PEBBLE (measured on feeding: over a 1M-step run the linear schedule
+    /// takes the task away as lambda_t nears 0, and success falls with it); the authors'
+    /// linear one is PrefPPO's default and `--preset paper`'s.
+    #[arg(long, value_enum, default_value = "exp")]
     pub lambda_schedule: Schedule,
-    /// Decoupled: the exponential schedule's rate.
-    #[arg(long, default_value_t = 1e-5)]
+    /// Decoupled: the exponential schedule's rate (1e-6: lambda_t is lambda_0 / e at 1M
+    /// env steps).
+    #[arg(long, default_value_t = 1e-6)]
     pub rho: f64,
     /// How queries are chosen among the candidates (the first session is always uniform).
     #[arg(long, value_enum, default_value = "disagreement")]
@@ -222,8 +226,8 @@ impl LearnerConfig {
 /// value.
 pub type Setting = (&'static str, &'static str, serde_json::Value);
 
-/// The authors' network sizes, and their ensemble training unbounded by `max_pairs`
-/// (`--preset paper`).
+/// The authors' settings where the defaults differ (`--preset paper`): their network
+/// sizes, their ensemble training unbounded by `max_pairs`, and the linear schedule.
 pub fn paper_preset() -> Vec<Setting> {
     use serde_json::json;
     vec![
@@ -236,6 +240,7 @@ pub fn paper_preset() -> Vec<Setting> {
             json!([256, 256, 256]),
         ),
         ("reward_max_pairs", "/pref/model/max_pairs", json!(0)),
+        ("lambda_schedule", "/pref/lambda_schedule", json!("linear")),
     ]
 }
 
@@ -245,6 +250,7 @@ pub fn ppo_preset() -> Vec<Setting> {
     use serde_json::json;
     vec![
         ("lambda0", "/pref/lambda0", json!(1.0)),
+        ("lambda_schedule", "/pref/lambda_schedule", json!("linear")),
         ("max_feedback", "/pref/max_feedback", json!(10_000)),
         (
             "feedback_interval",
@@ -336,10 +342,28 @@ mod tests {
         apply_preset(&mut cfg, &ppo_preset(), &explicit).unwrap();
         assert_eq!(cfg.pref.lambda0, 7.0, "set by the user");
         assert_eq!(cfg.pref.feedback_interval, 16_000, "PrefPPO's default");
-        apply_preset(&mut cfg, &paper_preset(), &BTreeSet::new()).unwrap();
         assert_eq!(
-            (cfg.sac.hidden.clone(), cfg.sac.batch),
-            (vec![512, 512], 512)
+            cfg.pref.lambda_schedule,
+            Schedule::Linear,
+            "PrefPPO's default"
+        );
+        let mut sac = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
+        assert_eq!(sac.pref.lambda_schedule, Schedule::Exp, "PEBBLE's default");
+        let explicit: BTreeSet<String> = ["sac_batch".to_string()].into();
+        sac.sac.batch = 64;
+        apply_preset(&mut sac, &paper_preset(), &explicit).unwrap();
+        assert_eq!(
+            (sac.sac.hidden.clone(), sac.sac.batch),
+            (vec![512, 512], 64)
+        );
+        assert_eq!(
+            sac.pref.model.max_pairs, 0,
+            "the authors' unbounded training"
+        );
+        assert_eq!(
+            sac.pref.lambda_schedule,
+            Schedule::Linear,
+            "the authors' schedule"
         );
     }
 
