@@ -255,11 +255,6 @@ impl Feedback {
         self.store.counts()
     }
 
-    /// The annotation buffer (for diagnostics against the truth).
-    pub fn buffer(&self) -> &AnnotationBuffer {
-        &self.buffer
-    }
-
     /// A session is due at `env_steps`.
     fn session_due(&self, env_steps: u64) -> Result<bool> {
         Ok(env_steps >= self.counters.next_session_at
@@ -610,7 +605,6 @@ impl Feedback {
     }
 }
 
-/// The soft target of a preference: P[second preferred].
 /// Lower the calling thread's scheduling priority to nice 10 (Linux; elsewhere nothing):
 /// the feedback jobs (choosing queries, training the ensemble) then run on the CPU that the
 /// learner's updates and the actors leave, instead of taking it from them. A session whose
@@ -630,6 +624,7 @@ fn lower_priority() {
     }
 }
 
+/// The soft target of a preference: P[second preferred].
 fn target(p: Preference) -> f32 {
     match p {
         Preference::First => 0.0,

@@ -487,7 +487,8 @@ pub async fn run(
                     },
                     seeds: seeds.clone(),
                     sampled: cfg.eval_sampled,
-                    steps: feedback.is_some(),
+                    // NOTE: only a learnt reward reads them (not while pretraining).
+                    steps: reward.model.is_some(),
                 };
                 evaluation::ask(&session, &keys, &mut curve, row, request).await?;
             }
