@@ -13,8 +13,10 @@ use pbrl_learner::ppo::PpoConfig;
 use pbrl_learner::run_folder::RunFolder;
 use pbrl_learner::sac::SacConfig;
 use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_teacher::human::HumanConfig;
 use pbrl_teacher::scripted::{ScriptedConfig, TeacherKind};
-use pbrl_teacher::service::{default_id, TeacherConfig};
+use pbrl_teacher::service::{self as teaching, default_id, TeacherConfig, TeacherSummary};
+use pbrl_teacher::web::HttpConfig;
 
 /// What to learn and how long: shared by `train` and `learner`. The backbones' and
 /// preference learning's settings are flags from their own config structs (flattened).
@@ -230,12 +232,92 @@ pub struct TrainArgs {
     pub connect: ConnectArgs,
 }
 
-/// A scripted teacher (paper Table I), in `train` (in-process) and `teacher`.
+/// Who answers preference queries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Who {
+    /// A scripted teacher of paper Table I.
+    Scripted(TeacherKind),
+    /// People, at the labelling page (or any client of its API).
+    Human,
+}
+
+fn parse_teacher(s: &str) -> Result<Who, String> {
+    if s == "human" {
+        return Ok(Who::Human);
+    }
+    TeacherKind::ALL
+        .into_iter()
+        .find(|k| k.name() == s)
+        .map(Who::Scripted)
+        .ok_or_else(|| {
+            let names: Vec<&str> = TeacherKind::ALL.iter().map(|k| k.name()).collect();
+            format!("{s:?} is not a teacher: {} or human", names.join(", "))
+        })
+}
+
+/// The shadow teacher of a person (`--shadow`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Shadow {
+    /// The oracle judges each query a person answers, on the ground truth; recorded
+    /// beside the person's answer, never shown and never trained on.
+    Oracle,
+}
+
+/// The human teacher's page and queue.
+#[derive(Args, Clone, Debug)]
+pub struct HumanArgs {
+    /// Human teacher: where the labelling page listens (loopback unless a --token is set).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub http: std::net::SocketAddr,
+    /// Human teacher: the access token every API call must carry (needed beyond loopback;
+    /// default: the PBRL_TOKEN environment variable).
+    #[arg(long)]
+    pub token: Option<String>,
+    /// Human teacher: seconds an answer can be undone before it goes to the learner.
+    #[arg(long, default_value_t = 10)]
+    pub undo_s: u64,
+    /// Human teacher: share of answered queries asked again (of the same person, and of
+    /// another when two are labelling), to measure consistency and agreement.
+    #[arg(long, default_value_t = 0.1)]
+    pub repeat_share: f64,
+    /// Human teacher: record a scripted teacher's answer beside each person's.
+    #[arg(long, value_enum)]
+    pub shadow: Option<Shadow>,
+    /// Human teacher: the queue's file (default: `teacher.sqlite` in the run folder for
+    /// `train`, `teacher-<run>.sqlite` here for `teacher`).
+    #[arg(long)]
+    pub teacher_state: Option<PathBuf>,
+}
+
+impl HumanArgs {
+    fn config(&self, state: PathBuf, seed: u64) -> HumanConfig {
+        HumanConfig {
+            undo_s: self.undo_s,
+            repeat_share: self.repeat_share,
+            shadow: self.shadow.is_some(),
+            seed,
+            ..HumanConfig::new(&self.teacher_state.clone().unwrap_or(state))
+        }
+    }
+
+    fn http(&self) -> HttpConfig {
+        HttpConfig {
+            addr: self.http,
+            token: self
+                .token
+                .clone()
+                .or_else(|| std::env::var("PBRL_TOKEN").ok().filter(|t| !t.is_empty())),
+        }
+    }
+}
+
+/// The teacher, in `train` (in-process) and `teacher`.
 #[derive(Args, Clone, Debug)]
 pub struct TeacherArgs {
-    /// The scripted teacher answering preference queries.
-    #[arg(long = "teacher", value_enum, default_value = "oracle")]
-    pub kind: TeacherKind,
+    /// Who answers preference queries: a scripted teacher of paper Table I (oracle, noisy,
+    /// mistake, skip, equal, myopic) or people at a labelling page (human).
+    #[arg(long = "teacher", default_value = "oracle", value_parser = parse_teacher)]
+    pub kind: Who,
     /// Lowest possible ground-truth return (the skip and equal thresholds are fractions of
     /// the mean return above it); default -350 on feeding (the authors'), -100 on the
     /// point task.
@@ -244,24 +326,66 @@ pub struct TeacherArgs {
     /// The teacher's id on the network (default `<kind>-<seed>`).
     #[arg(long)]
     pub teacher_id: Option<String>,
+    #[command(flatten)]
+    pub human: HumanArgs,
 }
 
 impl TeacherArgs {
     fn configs(&self, run: &str, task: Task, seed: u64) -> (TeacherConfig, ScriptedConfig) {
-        let mut scripted = ScriptedConfig::of(self.kind, seed);
+        let kind = match self.kind {
+            Who::Scripted(k) => k,
+            Who::Human => TeacherKind::Oracle,
+        };
+        let mut scripted = ScriptedConfig::of(kind, seed);
         scripted.r_min = self.teacher_r_min.unwrap_or(match task {
             Task::Feeding => -350.0,
             Task::Point => -100.0,
         });
-        let id = self
-            .teacher_id
-            .clone()
-            .unwrap_or_else(|| default_id(self.kind, seed));
+        let id = self.teacher_id.clone().unwrap_or_else(|| match self.kind {
+            Who::Scripted(k) => default_id(k, seed),
+            Who::Human => format!("human-{seed}"),
+        });
         (TeacherConfig::new(run, &id), scripted)
+    }
+
+    /// Run the teacher until `shutdown`: scripted, or the human teacher's page (feeding
+    /// only: a person watches the episodes) with its queue in `state`.
+    #[allow(clippy::too_many_arguments)]
+    async fn run(
+        &self,
+        run: &str,
+        task: Task,
+        seed: u64,
+        world: &pbrl_actor::WorldConfig,
+        state: PathBuf,
+        session: zenoh::Session,
+        shutdown: impl std::future::Future<Output = ()>,
+    ) -> Result<TeacherSummary> {
+        let (cfg, scripted) = self.configs(run, task, seed);
+        match self.kind {
+            Who::Scripted(_) => teaching::run(cfg, scripted, session, shutdown).await,
+            Who::Human => {
+                if task != Task::Feeding {
+                    anyhow::bail!(
+                        "--teacher human: people judge feeding episodes; the {task:?} task has nothing to watch"
+                    );
+                }
+                teaching::run_human(
+                    cfg,
+                    self.human.config(state, seed),
+                    self.human.http(),
+                    world.clone(),
+                    session,
+                    shutdown,
+                )
+                .await
+            }
+        }
     }
 }
 
-/// `pbrl teacher`: a scripted teacher, joining a Zenoh network.
+/// `pbrl teacher`: a scripted teacher, or people at a labelling page, joining a Zenoh
+/// network.
 #[derive(Args, Debug)]
 pub struct TeacherProcessArgs {
     /// Run id, as the learner's.
@@ -269,6 +393,11 @@ pub struct TeacherProcessArgs {
     pub run: String,
     #[command(flatten)]
     pub teacher: TeacherArgs,
+    /// People answer, at the labelling page on --http (as `--teacher human`).
+    #[arg(long)]
+    pub human: bool,
+    #[command(flatten)]
+    pub world: WorldArgs,
     #[arg(long, value_enum, default_value = "feeding")]
     pub task: Task,
     /// Seed of the teacher's random choices (noisy, mistake).
@@ -278,10 +407,25 @@ pub struct TeacherProcessArgs {
     pub connect: ConnectArgs,
 }
 
-pub async fn teacher(args: TeacherProcessArgs) -> Result<()> {
-    let (cfg, scripted) = args.teacher.configs(&args.run, args.task, args.seed);
+pub async fn teacher(mut args: TeacherProcessArgs) -> Result<()> {
+    if args.human {
+        args.teacher.kind = Who::Human;
+    }
+    let world = args.world.config()?;
+    let state = PathBuf::from(format!("teacher-{}.sqlite", args.run));
     let session = args.connect.open().await?;
-    let s = pbrl_teacher::service::run(cfg, scripted, session, stop_signal()).await?;
+    let s = args
+        .teacher
+        .run(
+            &args.run,
+            args.task,
+            args.seed,
+            &world,
+            state,
+            session,
+            stop_signal(),
+        )
+        .await?;
     println!(
         "teacher done: {} queries judged ({:?}), {} answers sent again, {} acknowledged",
         s.judged, s.by_kind, s.resent, s.acknowledged
@@ -428,6 +572,13 @@ async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<P
         (args.connect.connect[0].clone(), session)
     };
     tracing::info!(%endpoint, run = %cfg.run, actors = args.actors, "train");
+    if args.teacher.kind == Who::Human && cfg.reward.learnt() && !args.external_teacher {
+        // NOTE: fail before training starts, not when the page cannot be served.
+        args.teacher.human.http().validate()?;
+        if args.learn.task != Task::Feeding {
+            anyhow::bail!("--teacher human: people judge feeding episodes; use --task feeding");
+        }
+    }
     let mut actors = Vec::new();
     let (tx, rx) = tokio::sync::watch::channel(false);
     for id in 0..args.actors {
@@ -449,18 +600,21 @@ async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<P
     }
     // The scripted teacher, on the same session, when the reward is learnt.
     let teacher = (cfg.reward.learnt() && !args.external_teacher).then(|| {
-        let (tcfg, scripted) = args
-            .teacher
-            .configs(&cfg.run, args.learn.task, args.learn.seed);
         let mut rx = rx.clone();
-        tokio::spawn(pbrl_teacher::service::run(
-            tcfg,
-            scripted,
-            session.clone(),
-            async move {
-                let _ = rx.wait_for(|stop| *stop).await;
-            },
-        ))
+        let teacher = args.teacher.clone();
+        let (run, task, seed) = (cfg.run.clone(), args.learn.task, args.learn.seed);
+        let state = cfg.out.as_ref().map_or_else(
+            || PathBuf::from(":memory:"),
+            |o| RunFolder::new(o).teacher(),
+        );
+        let (world, session) = (world.clone(), session.clone());
+        tokio::spawn(async move {
+            teacher
+                .run(&run, task, seed, &world, state, session, async move {
+                    let _ = rx.wait_for(|stop| *stop).await;
+                })
+                .await
+        })
     });
     let out = cfg.out.clone();
     let summary = service::run(cfg, session, stop_signal()).await?;

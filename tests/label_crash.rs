@@ -97,13 +97,7 @@ async fn a_learner_killed_with_queries_in_flight_gets_every_answer_once_after_re
         .map(|q| {
             (
                 q.id,
-                Answer {
-                    query: q.id,
-                    preference: oracle.judge(q),
-                    teacher: "oracle".into(),
-                    teacher_id: "slow-0".into(),
-                    took_ms: 5,
-                },
+                Answer::scripted(q.id, oracle.judge(q), "oracle", "slow-0", 5),
             )
         })
         .collect();

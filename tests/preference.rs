@@ -133,12 +133,8 @@ async fn a_teacher_on_its_own_session_teaches_a_learner_and_bad_answers_are_drop
     // A foreign client: every kind of bad answer, then a repeat of a real one.
     let foreign = ConnectArgs::connecting_to(&endpoint).open().await.unwrap();
     let keys = Keys::new(run).unwrap();
-    let answer = |query: u64, teacher_id: &str| Answer {
-        query,
-        preference: Preference::First,
-        teacher: "oracle".into(),
-        teacher_id: teacher_id.into(),
-        took_ms: 1,
+    let answer = |query: u64, teacher_id: &str| {
+        Answer::scripted(query, Preference::First, "oracle", teacher_id, 1)
     };
     let good = Body::Answer(answer(1, "foreign-0"));
     let mut bad = support::bad_payloads(

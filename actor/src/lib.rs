@@ -14,4 +14,5 @@ pub use world::{FeedingWorld, Step, WorldError, ACT_DIM, OBS_DIM};
 pub mod cli;
 pub mod controller;
 pub mod render;
+pub mod replay;
 pub mod rollout;

@@ -45,7 +45,7 @@ pub fn load_font() -> Result<()> {
         .map_err(|e| anyhow!(e))
 }
 
-fn pose(p: &[f32; 7]) -> Isometry3<f64> {
+pub(crate) fn pose(p: &[f32; 7]) -> Isometry3<f64> {
     let p = p.map(f64::from);
     Isometry3::from_parts(
         Translation3::new(p[0], p[1], p[2]),
@@ -55,20 +55,34 @@ fn pose(p: &[f32; 7]) -> Isometry3<f64> {
 
 /// A view: which world axes go right and up.
 #[derive(Clone, Copy)]
-struct View {
-    name: &'static str,
-    axes: (usize, usize),
-    labels: (&'static str, &'static str),
+pub(crate) struct View {
+    pub(crate) name: &'static str,
+    pub(crate) axes: (usize, usize),
+    pub(crate) labels: (&'static str, &'static str),
 }
 
 impl View {
-    fn project(&self, p: &Point3<f64>) -> (f64, f64) {
+    pub(crate) fn project(&self, p: &Point3<f64>) -> (f64, f64) {
         (p[self.axes.0], p[self.axes.1])
     }
 }
 
+/// The two views of a feeding scene: side and front.
+pub(crate) const VIEWS: [View; 2] = [
+    View {
+        name: "Side view (from the person's right)",
+        axes: (1, 2),
+        labels: ("y (m), the person faces -y", "z (m)"),
+    },
+    View {
+        name: "Front view (facing the person)",
+        axes: (0, 2),
+        labels: ("x (m)", "z (m)"),
+    },
+];
+
 /// The outline of a shape projected on the view's plane.
-fn outline(view: &View, shape: &Shape) -> Vec<(f64, f64)> {
+pub(crate) fn outline(view: &View, shape: &Shape) -> Vec<(f64, f64)> {
     let circle = |c: (f64, f64), r: f64, from: f64, to: f64| -> Vec<(f64, f64)> {
         (0..=16)
             .map(|k| {
@@ -186,18 +200,7 @@ pub fn render(t: &Trajectory, cfg: &WorldConfig, controller: &str, out: &Path) -
         (20, 20),
     )
     .map_err(draw_err)?;
-    let views = [
-        View {
-            name: "Side view (from the person's right)",
-            axes: (1, 2),
-            labels: ("y (m), the person faces -y", "z (m)"),
-        },
-        View {
-            name: "Front view (facing the person)",
-            axes: (0, 2),
-            labels: ("x (m)", "z (m)"),
-        },
-    ];
+    let views = VIEWS;
     let panels = body.split_evenly((1, 2));
     for (area, view) in panels.iter().zip(views) {
         // The region of interest: arm, spoon path, head; equal scale on both axes.

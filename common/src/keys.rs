@@ -94,6 +94,32 @@ impl Keys {
         format!("pbrl/{}/learner/0/ack/{teacher}", self.run)
     }
 
+    /// The learner's state, every second ([`crate::wire::LearnerStatus`]).
+    pub fn status(&self) -> String {
+        format!("pbrl/{}/learner/0/status", self.run)
+    }
+
+    /// The liveliness token of a person labelling at teacher `teacher` (`name` with
+    /// anything but a-z, A-Z, 0-9, '-' and '_' as '_').
+    pub fn labeller(&self, teacher: &str, name: &str) -> String {
+        let name: String = name
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        format!("pbrl/{}/teacher/{teacher}/labeller/{name}", self.run)
+    }
+
+    /// Every labeller's liveliness token (a liveliness subscription).
+    pub fn all_labellers(&self) -> String {
+        format!("pbrl/{}/teacher/*/labeller/*", self.run)
+    }
+
     /// The learner's stop signal to the run's actors.
     pub fn stop(&self) -> String {
         format!("pbrl/{}/learner/0/stop", self.run)

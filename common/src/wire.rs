@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 5;
+pub const WIRE_FORMAT: u16 = 6;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -162,6 +162,9 @@ pub struct Query {
     pub session: u64,
     /// Unix time in milliseconds when it was first asked.
     pub asked_at_ms: u64,
+    /// Unix time in milliseconds after which the learner no longer waits for an answer
+    /// (0: never); a teacher takes it off its queue then.
+    pub expires_at_ms: u64,
     pub first: Shown,
     pub second: Shown,
 }
@@ -216,6 +219,56 @@ pub struct Answer {
     pub teacher_id: String,
     /// How long the teacher took, in milliseconds (a person's time).
     pub took_ms: u64,
+    /// Who answered, for a person (empty for a scripted teacher): 1-40 characters of
+    /// letters, digits, space, `_`, `.` and `-`.
+    pub labeller: String,
+    /// How often the person played each attempt through (first, second).
+    pub replays: [u32; 2],
+    /// The oracle's answer on the ground truth (`--shadow oracle`): recorded, never shown
+    /// and never trained on.
+    pub shadow: Option<Preference>,
+    /// A query asked again to measure consistency and agreement: stored apart from D.
+    pub repeat: bool,
+}
+
+impl Answer {
+    /// A scripted teacher's answer (no labeller, no replays, no shadow, not a repeat).
+    pub fn scripted(
+        query: u64,
+        preference: Preference,
+        teacher: &str,
+        teacher_id: &str,
+        took_ms: u64,
+    ) -> Self {
+        Self {
+            query,
+            preference,
+            teacher: teacher.into(),
+            teacher_id: teacher_id.into(),
+            took_ms,
+            labeller: String::new(),
+            replays: [0, 0],
+            shadow: None,
+            repeat: false,
+        }
+    }
+}
+
+/// Check a labeller's name.
+pub fn check_labeller(field: &str, name: &str) -> Result<(), WireError> {
+    let ok = name.chars().count() <= 40
+        && name
+            .chars()
+            .all(|c| c.is_alphanumeric() || matches!(c, ' ' | '_' | '.' | '-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(WireError::Invalid {
+            field: field.to_string(),
+            value: name.chars().take(80).collect(),
+            reason: "must be at most 40 characters of letters, digits, space, '_', '.' and '-'",
+        })
+    }
 }
 
 /// The learner's word that it stored these answers of teacher `teacher_id` (committed to
@@ -224,6 +277,26 @@ pub struct Answer {
 pub struct AnswerAck {
     pub teacher_id: String,
     pub queries: Vec<u64>,
+    /// Repeated queries' answers stored (by query and labeller).
+    pub repeats: Vec<(u64, String)>,
+}
+
+/// The learner's state, published every second for teachers and people: what a labelling
+/// page shows and how a teacher knows that training runs.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LearnerStatus {
+    /// Env steps so far.
+    pub env_steps: u64,
+    /// Queries asked, answered (first, second, equal or skip), and open now.
+    pub asked: u64,
+    pub answered: u64,
+    pub open: u64,
+    /// Queries the budget still allows.
+    pub budget_left: u64,
+    /// A feedback session is due and waits for open queries to be answered.
+    pub waiting: bool,
+    /// People labelling now (by the teachers' liveliness tokens).
+    pub labellers: u32,
 }
 
 /// Everything that travels.
@@ -237,6 +310,7 @@ pub enum Body {
     Query(Box<Query>),
     Answer(Answer),
     AnswerAck(AnswerAck),
+    Status(LearnerStatus),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -399,8 +473,15 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                     reason: "must be 1 to 64 characters long",
                 });
             }
+            check_labeller("labeller", &a.labeller)?;
         }
-        Body::AnswerAck(a) => check_teacher_id("teacher_id", &a.teacher_id)?,
+        Body::AnswerAck(a) => {
+            check_teacher_id("teacher_id", &a.teacher_id)?;
+            for (_, l) in &a.repeats {
+                check_labeller("repeats.labeller", l)?;
+            }
+        }
+        Body::Status(_) => {}
     }
     Ok(env.body)
 }
@@ -568,6 +649,7 @@ mod tests {
             id: 3,
             session: 1,
             asked_at_ms: 1,
+            expires_at_ms: 0,
             first: shown(1, 4),
             second: shown(2, 4),
         }));
@@ -582,6 +664,7 @@ mod tests {
                     id: 3,
                     session: 1,
                     asked_at_ms: 1,
+                    expires_at_ms: 0,
                     first: shown(1, 4),
                     second: bad,
                 })),
@@ -589,13 +672,8 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.to_string().contains("second.actions"), "{e}");
-        let answer = |teacher_id: &str| Answer {
-            query: 3,
-            preference: Preference::Equal,
-            teacher: "oracle".into(),
-            teacher_id: teacher_id.into(),
-            took_ms: 2,
-        };
+        let answer =
+            |teacher_id: &str| Answer::scripted(3, Preference::Equal, "oracle", teacher_id, 2);
         let a = Body::Answer(answer("oracle-0"));
         assert_eq!(decode("r", &encode("r", &a)).unwrap(), a);
         let e = decode("r", &encode("r", &Body::Answer(answer("a/b")))).unwrap_err();

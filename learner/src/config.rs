@@ -15,6 +15,10 @@ use crate::reward::{RewardSource, Schedule};
 use crate::reward_model::RewardModelConfig;
 use crate::sac::SacConfig;
 
+fn default_max_open() -> u64 {
+    200
+}
+
 /// The RL backbone.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -76,6 +80,12 @@ pub struct PrefConfig {
     /// label store as expired and still counts against the budget.
     #[arg(long, default_value_t = 0)]
     pub query_expiry_s: u64,
+    /// At most this many queries wait for answers at once (0: no bound); a session that is
+    /// due waits for answers (a person's pace) and asks only what the bound leaves. Training
+    /// goes on meanwhile with the reward model it has.
+    #[arg(long, default_value_t = 200)]
+    #[serde(default = "default_max_open")]
+    pub max_open_queries: u64,
     #[command(flatten)]
     pub model: RewardModelConfig,
 }

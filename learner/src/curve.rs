@@ -94,6 +94,12 @@ columns! {
         /// correlation of per-step r_hat with r, and of episode sums (NaN before a model).
         rhat_step_corr: f64 => "{:.4}",
         rhat_return_corr: f64 => "{:.4}",
+        /// Queries waiting for an answer now; 1 while a feedback session is due and waits
+        /// for them (the learner is waiting for labels; training goes on); people
+        /// labelling now.
+        labels_open: u64 => "{}",
+        waiting_labels: u8 => "{}",
+        labellers: u64 => "{}",
     }
 }
 
@@ -144,6 +150,9 @@ impl CurveRow {
             reward_accuracy_new: nan,
             rhat_step_corr: nan,
             rhat_return_corr: nan,
+            labels_open: 0,
+            waiting_labels: 0,
+            labellers: 0,
         }
     }
 }
@@ -216,13 +225,23 @@ impl Curve {
         };
         let labels = if row.labels_asked > 0 || row.pretraining > 0 {
             format!(
-                "; labels {}/{}{}",
+                "; labels {}/{}{}{}{}",
                 row.labels_answered,
                 row.labels_asked,
                 if row.pretraining > 0 {
                     ", pretraining"
                 } else {
                     ""
+                },
+                if row.waiting_labels > 0 {
+                    format!(", waiting for labels ({} open)", row.labels_open)
+                } else {
+                    String::new()
+                },
+                match row.labellers {
+                    0 => String::new(),
+                    1 => ", 1 person labelling".to_string(),
+                    n => format!(", {n} people labelling"),
                 }
             )
         } else {

@@ -259,7 +259,27 @@ impl Feedback {
     fn session_due(&self, env_steps: u64) -> Result<bool> {
         Ok(env_steps >= self.counters.next_session_at
             && self.buffer.len() >= 2
+            && self.room() > 0
             && !self.frozen()?)
+    }
+
+    /// Queries the bound on open ones leaves room for.
+    fn room(&self) -> u64 {
+        match self.cfg.max_open_queries {
+            0 => u64::MAX,
+            n => n.saturating_sub(self.in_flight.len() as u64),
+        }
+    }
+
+    /// Queries the budget still allows, with `asked` asked so far.
+    pub fn budget_left(&self, asked: u64) -> u64 {
+        self.cfg.max_feedback.saturating_sub(asked)
+    }
+
+    /// A session is due at `env_steps` and waits for open queries to be answered (the
+    /// bound on open queries is reached): the learner is waiting for labels.
+    pub fn waiting(&self, env_steps: u64) -> Result<bool> {
+        Ok(env_steps >= self.counters.next_session_at && self.room() == 0 && !self.frozen()?)
     }
 
     /// New labels wait for training, and the session that asked them is answered (or the
@@ -298,7 +318,7 @@ impl Feedback {
         } else if self.session_due(env_steps)? {
             let session = self.counters.sessions + 1;
             let left = self.cfg.max_feedback - self.store.counts()?.asked;
-            let k = self.cfg.queries_per_session.min(left) as usize;
+            let k = self.cfg.queries_per_session.min(left).min(self.room()) as usize;
             // NOTE: the first session is uniform: an untrained ensemble's disagreement
             // means nothing.
             let sampler = if session == 1 || !self.model.trained() {
@@ -448,6 +468,10 @@ impl Feedback {
             let asked_at_ms = now_ms();
             let mut built = None;
             let run = self.run.clone();
+            let expires_at_ms = match self.cfg.query_expiry_s {
+                0 => 0,
+                s => asked_at_ms + s * 1000,
+            };
             let asked = self.store.ask(
                 session,
                 sampler_name,
@@ -460,6 +484,7 @@ impl Feedback {
                         id,
                         session,
                         asked_at_ms,
+                        expires_at_ms,
                         first: shown(a, first),
                         second: shown(b, second),
                     };
@@ -486,14 +511,25 @@ impl Feedback {
     /// Store a teacher's answer (committed before this returns) and say whether to
     /// acknowledge it.
     pub fn answer(&mut self, a: &Answer) -> Result<Answered> {
-        let stored = self.store.answer(
-            a.query,
-            a.preference,
-            &a.teacher,
-            &a.teacher_id,
-            a.took_ms,
-            now_ms(),
-        )?;
+        if a.repeat {
+            return Ok(match self.store.repeat(a, now_ms())? {
+                Stored::Unknown => {
+                    self.counters.unknown_answers += 1;
+                    tracing::warn!(
+                        query = a.query,
+                        teacher = %a.teacher_id,
+                        "dropped a repeated answer to a query this run never asked"
+                    );
+                    Answered::Dropped
+                }
+                _ => Answered::Ack(AnswerAck {
+                    teacher_id: a.teacher_id.clone(),
+                    queries: Vec::new(),
+                    repeats: vec![(a.query, a.labeller.clone())],
+                }),
+            });
+        }
+        let stored = self.store.answer(a, now_ms())?;
         match stored {
             Stored::New | Stored::Late => {
                 let open = self.in_flight.remove(&a.query);
@@ -536,6 +572,7 @@ impl Feedback {
         Ok(Answered::Ack(AnswerAck {
             teacher_id: a.teacher_id.clone(),
             queries: vec![a.query],
+            repeats: Vec::new(),
         }))
     }
 

@@ -12,7 +12,7 @@
 //! observation at which each action was taken and the action as the policy gave it.
 //!
 //! ```text
-//! meta          key, value: `run` (the run's name) and `schema` (this layout, 1)
+//! meta          key, value: `run` (the run's name) and `schema` (this layout, 2)
 //! trajectories  id, actor, incarnation, seq (unique: the actor's numbering), seed,
 //!               policy_version, steps, obs_dim, act_dim,
 //!               obs (steps x obs_dim f32, little-endian), actions (steps x act_dim)
@@ -21,7 +21,12 @@
 //!               answer (NULL while open; first, second, equal, skip or expired),
 //!               teacher, teacher_id, took_ms, answered_at_ms,
 //!               expired_at_ms (kept when a late answer follows), answer_no (1, 2, ...
-//!               in the order answers were stored)
+//!               in the order answers were stored); for a person's answer also
+//!               labeller, replays_first, replays_second (how often each attempt was
+//!               played) and shadow (the oracle's answer on the truth, never trained on)
+//! repeats       query, teacher_id, labeller, answer, took_ms, replays_first,
+//!               replays_second, shadow, answered_at_ms: queries asked again of a person
+//!               (the same one or another) to measure consistency; not part of D
 //! labels        a view: the answered queries (first, second, equal) with both
 //!               trajectories' policy versions, seeds and lengths, in answer order
 //! ```
@@ -51,11 +56,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use pbrl_common::wire::Preference;
+use pbrl_common::wire::{Answer, Preference};
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 
 /// The layout this build writes and reads (`meta.schema`).
-pub const SCHEMA: u32 = 1;
+pub const SCHEMA: u32 = 2;
 
 const CREATE: &str = "
 CREATE TABLE meta (
@@ -92,12 +97,42 @@ CREATE TABLE queries (
     answered_at_ms INTEGER,
     expired_at_ms INTEGER,
     answer_no INTEGER UNIQUE,
+    labeller TEXT,
+    replays_first INTEGER,
+    replays_second INTEGER,
+    shadow TEXT,
     CHECK ((answer IS NULL) = (message IS NOT NULL))
 );
 CREATE INDEX queries_open ON queries (id) WHERE answer IS NULL;
+";
+
+/// What schema 2 added to schema 1's queries (its tables and view follow).
+const MIGRATE_1_TO_2: &str = "
+ALTER TABLE queries ADD COLUMN labeller TEXT;
+ALTER TABLE queries ADD COLUMN replays_first INTEGER;
+ALTER TABLE queries ADD COLUMN replays_second INTEGER;
+ALTER TABLE queries ADD COLUMN shadow TEXT;
+DROP VIEW labels;
+UPDATE meta SET value = '2' WHERE key = 'schema';
+";
+
+const REPEATS_AND_VIEW: &str = "
+CREATE TABLE repeats (
+    query INTEGER NOT NULL REFERENCES queries (id),
+    teacher_id TEXT NOT NULL,
+    labeller TEXT NOT NULL,
+    answer TEXT NOT NULL CHECK (answer IN ('first', 'second', 'equal', 'skip')),
+    took_ms INTEGER NOT NULL,
+    replays_first INTEGER NOT NULL,
+    replays_second INTEGER NOT NULL,
+    shadow TEXT,
+    answered_at_ms INTEGER NOT NULL,
+    PRIMARY KEY (query, teacher_id, labeller)
+);
 CREATE VIEW labels AS
 SELECT q.id AS query, q.session, q.sampler, q.env_steps, q.answer, q.teacher, q.teacher_id,
-       q.took_ms, q.asked_at_ms, q.answered_at_ms,
+       q.took_ms, q.asked_at_ms, q.answered_at_ms, q.labeller, q.replays_first,
+       q.replays_second, q.shadow,
        datetime(q.answered_at_ms / 1000, 'unixepoch') AS answered_at, q.answer_no,
        q.first, a.policy_version AS first_policy_version, a.seed AS first_seed,
        a.steps AS first_steps,
@@ -344,9 +379,10 @@ impl LabelStore {
             })
             .with_context(|| format!("listing the tables of {}", path.display()))?;
         if tables.is_empty() {
-            tx.execute_batch(CREATE).with_context(|| {
-                format!("creating the tables of label store {}", path.display())
-            })?;
+            tx.execute_batch(&format!("{CREATE}{REPEATS_AND_VIEW}"))
+                .with_context(|| {
+                    format!("creating the tables of label store {}", path.display())
+                })?;
             tx.execute(
                 "INSERT INTO meta (key, value) VALUES ('run', ?1), ('schema', ?2)",
                 params![run, SCHEMA.to_string()],
@@ -367,7 +403,14 @@ impl LabelStore {
                 .optional()
                 .with_context(|| format!("reading meta.{key} of label store {}", path.display()))
         };
-        let schema = get("schema")?.unwrap_or_default();
+        let mut schema = get("schema")?.unwrap_or_default();
+        if schema == "1" {
+            // NOTE: a store of an older build (its run resumed by this one) gains the
+            // columns of a person's answers and the repeats; nothing it holds changes.
+            tx.execute_batch(&format!("{MIGRATE_1_TO_2}{REPEATS_AND_VIEW}"))
+                .with_context(|| format!("upgrading label store {} to schema 2", path.display()))?;
+            schema = SCHEMA.to_string();
+        }
         if schema != SCHEMA.to_string() {
             bail!(
                 "label store {} has schema version {schema:?}, this build reads version {SCHEMA}",
@@ -381,7 +424,8 @@ impl LabelStore {
                 path.display()
             );
         }
-        Ok(())
+        tx.commit()
+            .with_context(|| format!("opening label store {}", path.display()))
     }
 
     /// A write transaction, taking the write lock at once.
@@ -451,15 +495,8 @@ impl LabelStore {
 
     /// Store a teacher's answer to `query` in its own transaction; returns once it is on
     /// disk. A second answer to a query is [`Stored::Repeated`] and changes nothing.
-    pub fn answer(
-        &mut self,
-        query: u64,
-        preference: Preference,
-        teacher: &str,
-        teacher_id: &str,
-        took_ms: u64,
-        answered_at_ms: u64,
-    ) -> Result<Stored> {
+    pub fn answer(&mut self, a: &Answer, answered_at_ms: u64) -> Result<Stored> {
+        let query = a.query;
         let path = self.path.clone();
         let context = || format!("storing the answer to query {query} in {}", path.display());
         let tx = self.write()?;
@@ -480,20 +517,75 @@ impl LabelStore {
         tx.execute(
             "UPDATE queries SET answer = ?1, teacher = ?2, teacher_id = ?3, took_ms = ?4,
                  answered_at_ms = ?5, message = NULL,
-                 answer_no = (SELECT coalesce(max(answer_no), 0) + 1 FROM queries)
+                 answer_no = (SELECT coalesce(max(answer_no), 0) + 1 FROM queries),
+                 labeller = ?7, replays_first = ?8, replays_second = ?9, shadow = ?10
              WHERE id = ?6",
             params![
-                preference.name(),
-                teacher,
-                teacher_id,
-                int(took_ms),
+                a.preference.name(),
+                a.teacher,
+                a.teacher_id,
+                int(a.took_ms),
                 int(answered_at_ms),
-                int(query)
+                int(query),
+                (!a.labeller.is_empty()).then_some(&a.labeller),
+                (!a.labeller.is_empty()).then_some(a.replays[0]),
+                (!a.labeller.is_empty()).then_some(a.replays[1]),
+                a.shadow.map(|p| p.name()),
             ],
         )
         .with_context(context)?;
         tx.commit().with_context(context)?;
         Ok(stored)
+    }
+
+    /// Store a person's answer to a query asked again ([`Answer::repeat`]), apart from D:
+    /// [`Stored::New`], [`Stored::Repeated`] if this labeller's repeat of it is stored
+    /// already, or [`Stored::Unknown`] for a query this run never asked.
+    pub fn repeat(&mut self, a: &Answer, answered_at_ms: u64) -> Result<Stored> {
+        let path = self.path.clone();
+        let context = || {
+            format!(
+                "storing a repeated answer to query {} in {}",
+                a.query,
+                path.display()
+            )
+        };
+        let tx = self.write()?;
+        let known: Option<i64> = tx
+            .query_row(
+                "SELECT id FROM queries WHERE id = ?1",
+                [int(a.query)],
+                |r| r.get(0),
+            )
+            .optional()
+            .with_context(context)?;
+        if known.is_none() {
+            return Ok(Stored::Unknown);
+        }
+        let n = tx
+            .execute(
+                "INSERT OR IGNORE INTO repeats (query, teacher_id, labeller, answer, took_ms,
+                     replays_first, replays_second, shadow, answered_at_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
+                params![
+                    int(a.query),
+                    a.teacher_id,
+                    a.labeller,
+                    a.preference.name(),
+                    int(a.took_ms),
+                    a.replays[0],
+                    a.replays[1],
+                    a.shadow.map(|p| p.name()),
+                    int(answered_at_ms),
+                ],
+            )
+            .with_context(context)?;
+        tx.commit().with_context(context)?;
+        Ok(if n == 1 {
+            Stored::New
+        } else {
+            Stored::Repeated
+        })
     }
 
     /// Give up waiting for an answer to `query`: true if it was open (a later answer is
@@ -817,7 +909,10 @@ mod tests {
 
     fn answer(store: &mut LabelStore, query: u64, p: Preference) -> Stored {
         store
-            .answer(query, p, "oracle", "oracle-0", 1_500, 2_000 + query)
+            .answer(
+                &Answer::scripted(query, p, "oracle", "oracle-0", 1_500),
+                2_000 + query,
+            )
             .unwrap()
     }
 
@@ -908,7 +1003,10 @@ mod tests {
         assert_eq!(answer(&mut store, q.query, Preference::First), Stored::New);
         assert_eq!(
             store
-                .answer(q.query, Preference::Second, "human", "ann", 9, 9)
+                .answer(
+                    &Answer::scripted(q.query, Preference::Second, "human", "ann", 9),
+                    9
+                )
                 .unwrap(),
             Stored::Repeated
         );

@@ -112,6 +112,11 @@ impl RunFolder {
         self.root.join("labels.sqlite")
     }
 
+    /// The in-process human teacher's queue and answers (`pbrl train --teacher human`).
+    pub fn teacher(&self) -> PathBuf {
+        self.root.join("teacher.sqlite")
+    }
+
     /// Whether the folder holds a run (its config).
     pub fn holds_run(&self) -> bool {
         self.config().exists()
@@ -150,8 +155,10 @@ impl RunFolder {
     /// aside (labels are people's time: never deleted).
     pub fn clear_fresh(&self) -> Result<()> {
         self.clear()?;
-        let labels = self.labels();
-        if labels.exists() {
+        for labels in [self.labels(), self.teacher()] {
+            if !labels.exists() {
+                continue;
+            }
             let ms = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0, |d| d.as_millis());
@@ -166,7 +173,7 @@ impl RunFolder {
             }
             tracing::warn!(
                 moved_to = %format!("{}.{ms}.old", labels.display()),
-                "starting over: the label store is kept aside"
+                "starting over: the store is kept aside"
             );
         }
         Ok(())

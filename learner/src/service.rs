@@ -13,8 +13,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use pbrl_common::bus::{put_message, Inbox, MessagePublisher, WeightsServer};
-use pbrl_common::wire::{Body, EvalRequest, EvalResult, EvalSteps, Query, Stop, Weights};
+use pbrl_common::bus::{put_message, Inbox, Labellers, MessagePublisher, WeightsServer};
+use pbrl_common::wire::{
+    AnswerAck, Body, EvalRequest, EvalResult, EvalSteps, LearnerStatus, Query, Stop, Weights,
+};
 use pbrl_common::Keys;
 use zenoh::qos::Priority;
 use zenoh::Session;
@@ -125,9 +127,25 @@ async fn next_of<T: Send + 'static>(inbox: &mut Option<Inbox<T>>) -> Result<T> {
 /// The Zenoh side of preference learning.
 struct Teachers {
     queries: MessagePublisher,
+    status: MessagePublisher,
 }
 
 impl Teachers {
+    /// Tell teachers (and the people at their pages) where the learner stands.
+    async fn status(&self, f: &Feedback, env_steps: u64, labellers: &Labellers) -> Result<()> {
+        let c = f.counts()?;
+        let s = LearnerStatus {
+            env_steps,
+            asked: c.asked,
+            answered: c.answered,
+            open: c.open,
+            budget_left: f.budget_left(c.asked),
+            waiting: f.waiting(env_steps)?,
+            labellers: labellers.count() as u32,
+        };
+        self.status.send(&Body::Status(s)).await
+    }
+
     async fn ask(&self, queries: &[Query]) -> Result<()> {
         for q in queries {
             self.queries.send(&Body::Query(Box::new(q.clone()))).await?;
@@ -145,22 +163,33 @@ async fn take_answers(
     first: pbrl_common::wire::Answer,
     inbox: &mut Option<Inbox<pbrl_common::wire::Answer>>,
 ) -> Result<()> {
-    let mut acks: std::collections::BTreeMap<String, Vec<u64>> = Default::default();
+    let mut acks: std::collections::BTreeMap<String, AnswerAck> = Default::default();
     let mut next = Some(first);
     while let Some(a) = next {
         // NOTE: `answer` commits the label before it returns; only then the acknowledgement.
         if let Answered::Ack(ack) = f.answer(&a)? {
-            acks.entry(ack.teacher_id).or_default().extend(ack.queries);
+            let all = acks
+                .entry(ack.teacher_id.clone())
+                .or_insert_with(|| AnswerAck {
+                    teacher_id: ack.teacher_id,
+                    queries: Vec::new(),
+                    repeats: Vec::new(),
+                });
+            all.queries.extend(ack.queries);
+            all.repeats.extend(ack.repeats);
         }
         next = inbox.as_mut().and_then(|i| i.try_next());
     }
-    for (teacher_id, queries) in acks {
+    for (teacher_id, ack) in acks {
         let key = keys.answer_ack(&teacher_id);
-        let ack = Body::AnswerAck(pbrl_common::wire::AnswerAck {
-            teacher_id,
-            queries,
-        });
-        put_message(session, keys, key, &ack, Priority::DataHigh).await?;
+        put_message(
+            session,
+            keys,
+            key,
+            &Body::AnswerAck(ack),
+            Priority::DataHigh,
+        )
+        .await?;
     }
     Ok(())
 }
@@ -256,7 +285,9 @@ pub async fn run(
     };
     let teachers = Teachers {
         queries: MessagePublisher::new(&session, &keys, keys.queries(), Priority::DataHigh).await?,
+        status: MessagePublisher::new(&session, &keys, keys.status(), Priority::Data).await?,
     };
+    let labellers = Labellers::watch(&session, &keys).await?;
     let stop = MessagePublisher::new(&session, &keys, keys.stop(), Priority::DataHigh).await?;
     tracing::debug!(config = %serde_json::to_string(&cfg)?, "learner config");
     tracing::info!(
@@ -346,6 +377,7 @@ pub async fn run(
                 p.eval_retries += evaluation::retry(&session, &keys, &mut curve, &mut actors).await?;
                 if let Some(f) = feedback.as_mut() {
                     teachers.ask(&f.retry()?).await?;
+                    teachers.status(f, p.env_steps, &labellers).await?;
                 }
                 continue;
             }
@@ -474,6 +506,9 @@ pub async fn run(
                 row.reward_accuracy_new = f.counters.accuracy_new;
                 row.retried_messages += f.counters.retried_queries;
                 row.dropped_messages += f.counters.unknown_answers;
+                row.labels_open = c.open;
+                row.waiting_labels = f.waiting(p.env_steps)? as u8;
+                row.labellers = labellers.count() as u64;
             }
             if cfg.eval_episodes == 0 {
                 curve.write(row)?;

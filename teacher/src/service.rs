@@ -125,13 +125,13 @@ pub async fn serve(
                     None => {
                         let start = Instant::now();
                         let preference = teacher.judge(&q);
-                        let answer = Answer {
-                            query: q.id,
+                        let answer = Answer::scripted(
+                            q.id,
                             preference,
-                            teacher: teacher.kind(),
-                            teacher_id: cfg.id.clone(),
-                            took_ms: start.elapsed().as_millis() as u64,
-                        };
+                            &teacher.kind(),
+                            &cfg.id,
+                            start.elapsed().as_millis() as u64,
+                        );
                         summary.judged += 1;
                         *summary.by_kind.entry(preference.name()).or_default() += 1;
                         given.insert(q.id, Given { answer: answer.clone(), sent: Instant::now(), acknowledged: false });
@@ -176,4 +176,99 @@ pub async fn serve(
 /// The default id of a teacher of `kind` with `seed`.
 pub fn default_id(kind: TeacherKind, seed: u64) -> String {
     format!("{}-{seed}", kind.name())
+}
+
+/// Serve people: the labelling page on `http`, the queue on `human`'s desk, until
+/// `shutdown`. Answers go to the learner once past their undo window, again every
+/// `cfg.resend` until acknowledged; each person at the page holds a liveliness token, so
+/// the learner knows whether anyone is labelling.
+pub async fn run_human(
+    cfg: TeacherConfig,
+    human: crate::human::HumanConfig,
+    http: crate::web::HttpConfig,
+    world: pbrl_actor::WorldConfig,
+    session: Session,
+    shutdown: impl Future<Output = ()>,
+) -> Result<TeacherSummary> {
+    use std::sync::{Arc, Mutex};
+    check_teacher_id("teacher id", &cfg.id)?;
+    let keys = Keys::new(&cfg.run)?;
+    let desk = Arc::new(Mutex::new(crate::human::Desk::open(
+        human, &cfg.run, &cfg.id,
+    )?));
+    let listener = crate::web::bind(&http).await?;
+    let addr = listener.local_addr()?;
+    let web = crate::web::Web::new(desk.clone(), world, http.token.clone());
+    let (stop_http, http_stopped) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(async move {
+        axum::serve(listener, crate::web::router(web))
+            .with_graceful_shutdown(async {
+                let _ = http_stopped.await;
+            })
+            .await
+    });
+    let mut queries = Inbox::queries(&session, &keys).await?;
+    let mut acks = Inbox::answer_acks(&session, &keys, &cfg.id).await?;
+    let mut status = Inbox::status(&session, &keys).await?;
+    let answers =
+        MessagePublisher::new(&session, &keys, keys.answer(&cfg.id), Priority::DataHigh).await?;
+    let lock = || desk.lock().unwrap_or_else(|e| e.into_inner());
+    tracing::info!(run = %cfg.run, id = %cfg.id, "labelling page on http://{addr}/");
+    let mut summary = TeacherSummary::default();
+    let mut tokens: HashMap<String, zenoh::liveliness::LivelinessToken> = HashMap::new();
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let resend_ms = cfg.resend.as_millis() as u64;
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            q = queries.next() => {
+                let again = lock().receive(*q?)?;
+                if let Some(a) = again {
+                    summary.resent += 1;
+                    answers.send(&Body::Answer(a)).await?;
+                }
+            }
+            a = acks.next() => {
+                let a = a?;
+                summary.acknowledged += lock().acknowledged(&a.queries, &a.repeats)?;
+            }
+            s = status.next() => lock().learner_status(s?),
+            _ = tick.tick() => {
+                let due = lock().due(resend_ms)?;
+                for a in due {
+                    summary.judged += 1;
+                    *summary.by_kind.entry(a.preference.name()).or_default() += 1;
+                    answers.send(&Body::Answer(a)).await?;
+                }
+                let present = lock().present();
+                tokens.retain(|name, _| present.contains(name));
+                for name in present {
+                    if !tokens.contains_key(&name) {
+                        let token = session
+                            .liveliness()
+                            .declare_token(keys.labeller(&cfg.id, &name))
+                            .await
+                            .map_err(|e| anyhow::anyhow!("declaring {name}'s liveliness: {e}"))?;
+                        tokens.insert(name, token);
+                    }
+                }
+            }
+        }
+    }
+    let _ = stop_http.send(());
+    match server.await {
+        Ok(Err(e)) => tracing::warn!(error = %e, "the labelling page failed"),
+        Err(e) => tracing::warn!(error = %e, "the labelling page's task died"),
+        Ok(Ok(())) => {}
+    }
+    summary.dropped = queries.dropped.get() + acks.dropped.get() + status.dropped.get();
+    let open = lock().unacknowledged();
+    if open > 0 {
+        tracing::warn!(
+            open,
+            "stopping with answers the learner has not acknowledged (kept on disk; sent when the teacher is back)"
+        );
+    }
+    Ok(summary)
 }

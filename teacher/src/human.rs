@@ -1,0 +1,710 @@
+//! The human teacher's desk: the queue of open queries that people answer from a page (or
+//! any client of the HTTP API in [`crate::web`]), kept on disk.
+//!
+//! A label is a person's time, so the desk writes each query it receives and each answer a
+//! person gives to its own SQLite file (WAL, synced at every commit) before anything else
+//! sees it, and keeps an answer until the learner acknowledges that its label store holds
+//! it. A teacher restarted finds its queue, its answers waiting for the learner and its
+//! repeats as they were.
+//!
+//! - An answer can be undone for `undo_s` seconds; then it goes to the learner.
+//! - Each query is leased to the person it is shown to for `lease_s` seconds, so two people
+//!   are not shown the same pair; a person may hold two (the page fetches the next pair
+//!   while the person judges the current one).
+//! - A share `repeat_share` of answered queries is asked again later: of the same person
+//!   (sides swapped at random again), and of another when someone else is labelling. Those
+//!   answers are repeats: stored apart from D, they measure consistency and agreement.
+//! - With `shadow`, the oracle also judges every query a person answers, on the ground
+//!   truth the query carries; its answer is recorded beside the person's, never shown and
+//!   never trained on.
+//! - Sides are shuffled per query and person, so neither side says which attempt is newer;
+//!   a person never sees the ground truth.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use pbrl_common::wire::{check_labeller, Answer, LearnerStatus, Preference, Query};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rusqlite::{params, Connection};
+use serde::{Deserialize, Serialize};
+
+use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
+
+/// The desk's settings.
+#[derive(Clone, Debug)]
+pub struct HumanConfig {
+    /// The desk's file (`:memory:` for none: answers then live only as long as the process).
+    pub state: std::path::PathBuf,
+    /// Seconds an answer can be undone before it goes to the learner.
+    pub undo_s: u64,
+    /// Seconds a query shown to a person stays theirs.
+    pub lease_s: u64,
+    /// Share of answered queries asked again (0 to 1).
+    pub repeat_share: f64,
+    /// Record the oracle's answer beside each person's.
+    pub shadow: bool,
+    /// Seed of the repeats' draws and the sides' shuffles.
+    pub seed: u64,
+}
+
+impl HumanConfig {
+    pub fn new(state: &Path) -> Self {
+        Self {
+            state: state.to_path_buf(),
+            undo_s: 10,
+            lease_s: 300,
+            repeat_share: 0.1,
+            shadow: false,
+            seed: 0,
+        }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if !(0.0..=1.0).contains(&self.repeat_share) {
+            bail!("repeat_share is {}: must be in [0, 1]", self.repeat_share);
+        }
+        if self.lease_s == 0 {
+            bail!("lease_s is 0: must be at least 1");
+        }
+        Ok(())
+    }
+}
+
+/// A person's choice as the page gives it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Choice {
+    Left,
+    Right,
+    Equal,
+    Skip,
+}
+
+/// Why the desk refused a request (the HTTP side's 4xx).
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum Refused {
+    #[error("no open query {0}")]
+    Unknown(u64),
+    #[error("query {0} is answered already")]
+    Answered(u64),
+    #[error("nothing to undo")]
+    NothingToUndo,
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// A pair to show: the query and which side goes left.
+#[derive(Clone, Debug)]
+pub struct Shown {
+    pub query: Arc<Query>,
+    /// The query's second trajectory is shown on the left.
+    pub swapped: bool,
+    pub repeat: bool,
+}
+
+/// An answer given and not yet acknowledged by the learner.
+#[derive(Clone, Debug)]
+struct Given {
+    answer: Answer,
+    given_at_ms: u64,
+    /// Past the undo window: goes to the learner.
+    settled: bool,
+    /// Sent to the learner at (ms; 0: not yet).
+    sent_at_ms: u64,
+}
+
+/// A query to ask a person again.
+#[derive(Clone, Debug)]
+struct Check {
+    query: u64,
+    labeller: String,
+    /// Shown once the person has answered this many (not at once after the first time).
+    due_after: u64,
+}
+
+/// What a person did at this desk since it started.
+#[derive(Clone, Debug, Default)]
+struct Person {
+    answered: u64,
+    last_seen_ms: u64,
+    /// The query of an undone answer, given back first.
+    undone: Option<(u64, bool)>,
+}
+
+/// The queue, the answers waiting for the learner and the repeats.
+pub struct Desk {
+    cfg: HumanConfig,
+    run: String,
+    teacher_id: String,
+    db: Connection,
+    /// Every query still needed: open, answered and not acknowledged, or to be repeated.
+    queries: BTreeMap<u64, Arc<Query>>,
+    /// Queries answered (by anyone), so not open.
+    answered: std::collections::BTreeSet<u64>,
+    leases: HashMap<u64, (String, u64)>,
+    /// Answers by (query, labeller, repeat).
+    given: BTreeMap<(u64, String, bool), Given>,
+    checks: Vec<Check>,
+    people: HashMap<String, Person>,
+    oracle: Scripted,
+    rng: ChaCha8Rng,
+    status: Option<(LearnerStatus, u64)>,
+    /// The learner's env steps grew at the last status.
+    training: bool,
+}
+
+const CREATE: &str = "
+CREATE TABLE IF NOT EXISTS queries (id INTEGER PRIMARY KEY, message BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS answers (
+    query INTEGER NOT NULL,
+    labeller TEXT NOT NULL,
+    repeat INTEGER NOT NULL,
+    message BLOB NOT NULL,
+    given_at_ms INTEGER NOT NULL,
+    PRIMARY KEY (query, labeller, repeat)
+);
+CREATE TABLE IF NOT EXISTS checks (
+    query INTEGER NOT NULL,
+    labeller TEXT NOT NULL,
+    due_after INTEGER NOT NULL,
+    PRIMARY KEY (query, labeller)
+);
+";
+
+fn code() -> bincode::config::Configuration {
+    bincode::config::standard()
+}
+
+fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl Desk {
+    /// Open the desk's file (creating it) and read back what it holds.
+    pub fn open(cfg: HumanConfig, run: &str, teacher_id: &str) -> Result<Self> {
+        cfg.validate()?;
+        let path = cfg.state.clone();
+        let db = Connection::open(&path)
+            .with_context(|| format!("opening the teacher's store {}", path.display()))?;
+        let context = || format!("setting up the teacher's store {}", path.display());
+        if path.as_os_str() != ":memory:" {
+            db.pragma_update(None, "journal_mode", "WAL")
+                .with_context(context)?;
+        }
+        db.pragma_update(None, "synchronous", "FULL")
+            .with_context(context)?;
+        db.execute_batch(CREATE).with_context(context)?;
+        let mut desk = Self {
+            run: run.into(),
+            teacher_id: teacher_id.into(),
+            db,
+            queries: BTreeMap::new(),
+            answered: Default::default(),
+            leases: HashMap::new(),
+            given: BTreeMap::new(),
+            checks: Vec::new(),
+            people: HashMap::new(),
+            oracle: Scripted::new(ScriptedConfig::of(TeacherKind::Oracle, cfg.seed))?,
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed ^ 0xdeb5_0000_0000_0001),
+            status: None,
+            training: false,
+            cfg,
+        };
+        desk.load()
+            .with_context(|| format!("reading the teacher's store {}", path.display()))?;
+        Ok(desk)
+    }
+
+    fn load(&mut self) -> Result<()> {
+        let rows: Vec<(i64, Vec<u8>)> = self
+            .db
+            .prepare("SELECT id, message FROM queries ORDER BY id")?
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+            .collect::<rusqlite::Result<_>>()?;
+        for (id, bytes) in rows {
+            let (q, _): (Query, usize) = bincode::serde::decode_from_slice(&bytes, code())
+                .with_context(|| format!("query {id} does not decode"))?;
+            self.queries.insert(q.id, Arc::new(q));
+        }
+        let rows: Vec<(Vec<u8>, i64)> = self
+            .db
+            .prepare("SELECT message, given_at_ms FROM answers")?
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+            .collect::<rusqlite::Result<_>>()?;
+        for (bytes, at) in rows {
+            let (a, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
+                .context("an answer does not decode")?;
+            if !a.repeat {
+                self.answered.insert(a.query);
+            }
+            self.given.insert(
+                (a.query, a.labeller.clone(), a.repeat),
+                Given {
+                    answer: a,
+                    given_at_ms: at as u64,
+                    settled: false,
+                    sent_at_ms: 0,
+                },
+            );
+        }
+        let rows: Vec<(i64, String, i64)> = self
+            .db
+            .prepare("SELECT query, labeller, due_after FROM checks")?
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
+            .collect::<rusqlite::Result<_>>()?;
+        self.checks = rows
+            .into_iter()
+            .map(|(query, labeller, due_after)| Check {
+                query: query as u64,
+                labeller,
+                due_after: due_after as u64,
+            })
+            .collect();
+        if !self.queries.is_empty() || !self.given.is_empty() {
+            tracing::info!(
+                open = self.open_queries(),
+                unacknowledged = self.given.len(),
+                repeats = self.checks.len(),
+                "the teacher's queue is back"
+            );
+        }
+        Ok(())
+    }
+
+    /// Queries waiting for a person's answer.
+    pub fn open_queries(&self) -> usize {
+        self.queries
+            .keys()
+            .filter(|id| !self.answered.contains(id))
+            .count()
+    }
+
+    /// A query from the learner: queued (written to disk first), unless answered already;
+    /// an answer given and settled is returned to be sent again (the learner has not stored
+    /// it).
+    pub fn receive(&mut self, q: Query) -> Result<Option<Answer>> {
+        if self.answered.contains(&q.id) {
+            let again = self
+                .given
+                .iter_mut()
+                .find(|((id, _, repeat), g)| *id == q.id && !repeat && g.settled)
+                .map(|(_, g)| {
+                    g.sent_at_ms = now_ms();
+                    g.answer.clone()
+                });
+            return Ok(again);
+        }
+        if self.queries.contains_key(&q.id) {
+            return Ok(None);
+        }
+        if q.expires_at_ms != 0 && q.expires_at_ms <= now_ms() {
+            return Ok(None);
+        }
+        let bytes = bincode::serde::encode_to_vec(&q, code())?;
+        self.db
+            .execute(
+                "INSERT OR IGNORE INTO queries (id, message) VALUES (?1, ?2)",
+                params![q.id as i64, bytes],
+            )
+            .with_context(|| format!("queueing query {}", q.id))?;
+        self.queries.insert(q.id, Arc::new(q));
+        Ok(None)
+    }
+
+    /// The learner stored these answers: forget them (and queries nobody needs now).
+    pub fn acknowledged(&mut self, queries: &[u64], repeats: &[(u64, String)]) -> Result<u64> {
+        let mut n = 0;
+        let keys: Vec<(u64, String, bool)> = self
+            .given
+            .keys()
+            .filter(|(q, l, repeat)| {
+                if *repeat {
+                    repeats.iter().any(|(rq, rl)| rq == q && rl == l)
+                } else {
+                    queries.contains(q)
+                }
+            })
+            .cloned()
+            .collect();
+        for k in keys {
+            // NOTE: only a settled answer was sent; an acknowledgement cannot come first.
+            if self.given.get(&k).is_some_and(|g| g.settled) {
+                self.db.execute(
+                    "DELETE FROM answers WHERE query = ?1 AND labeller = ?2 AND repeat = ?3",
+                    params![k.0 as i64, k.1, k.2],
+                )?;
+                self.given.remove(&k);
+                n += 1;
+                self.forget_if_done(k.0)?;
+            }
+        }
+        Ok(n)
+    }
+
+    fn forget_if_done(&mut self, query: u64) -> Result<()> {
+        let needed = !self.answered.contains(&query)
+            || self.given.keys().any(|(q, _, _)| *q == query)
+            || self.checks.iter().any(|c| c.query == query);
+        if !needed {
+            self.db
+                .execute("DELETE FROM queries WHERE id = ?1", [query as i64])?;
+            self.queries.remove(&query);
+        }
+        Ok(())
+    }
+
+    /// Answers past their undo window that the learner has not acknowledged and that were
+    /// not sent within `resend_ms`: to send now. Expired open queries leave the queue.
+    pub fn due(&mut self, resend_ms: u64) -> Result<Vec<Answer>> {
+        let now = now_ms();
+        let undo_ms = self.cfg.undo_s * 1000;
+        let mut out = Vec::new();
+        for g in self.given.values_mut() {
+            if !g.settled && now >= g.given_at_ms + undo_ms {
+                g.settled = true;
+            }
+            if g.settled && (g.sent_at_ms == 0 || now >= g.sent_at_ms + resend_ms) {
+                g.sent_at_ms = now;
+                out.push(g.answer.clone());
+            }
+        }
+        let expired: Vec<u64> = self
+            .queries
+            .values()
+            .filter(|q| {
+                !self.answered.contains(&q.id) && q.expires_at_ms != 0 && q.expires_at_ms <= now
+            })
+            .map(|q| q.id)
+            .collect();
+        for id in expired {
+            self.db
+                .execute("DELETE FROM queries WHERE id = ?1", [id as i64])?;
+            self.queries.remove(&id);
+            self.leases.remove(&id);
+        }
+        Ok(out)
+    }
+
+    fn swapped(&self, query: u64, labeller: &str, repeat: bool) -> bool {
+        // NOTE: a hash of the query, the person and the round, mixed with the desk's seed:
+        // the same pair shows the same way on a reload, and a repeat is drawn afresh.
+        let mut h: u64 = self.cfg.seed ^ 0x9e37_79b9_7f4a_7c15;
+        for b in labeller
+            .bytes()
+            .chain(query.to_le_bytes())
+            .chain([repeat as u8])
+        {
+            h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        (h >> 29) & 1 == 1
+    }
+
+    /// The next pair for `labeller` (none open: `None`), not `exclude`: an undone answer's
+    /// query first, then a repeat that is due, then the oldest open query nobody else holds.
+    pub fn next(&mut self, labeller: &str, exclude: Option<u64>) -> Result<Option<Shown>, Refused> {
+        check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
+        if labeller.trim().is_empty() {
+            return Err(Refused::Invalid("labeller: a name is needed".into()));
+        }
+        let now = now_ms();
+        let lease_ms = self.cfg.lease_s * 1000;
+        let person = self.people.entry(labeller.to_string()).or_default();
+        person.last_seen_ms = now;
+        let answered_by_them = person.answered;
+        let undone = person.undone;
+        let pick = |id: u64, repeat: bool| Some((id, repeat));
+        let mut chosen = None;
+        if let Some((id, repeat)) = undone {
+            if Some(id) != exclude && self.queries.contains_key(&id) {
+                chosen = pick(id, repeat);
+            }
+        }
+        if chosen.is_none() {
+            chosen = self
+                .checks
+                .iter()
+                .find(|c| {
+                    c.labeller == labeller
+                        && c.due_after <= answered_by_them
+                        && Some(c.query) != exclude
+                        && self.queries.contains_key(&c.query)
+                })
+                .map(|c| (c.query, true));
+        }
+        if chosen.is_none() {
+            chosen = self
+                .queries
+                .keys()
+                .find(|id| {
+                    !self.answered.contains(id)
+                        && Some(**id) != exclude
+                        && match self.leases.get(id) {
+                            Some((who, at)) => who == labeller || now >= at + lease_ms,
+                            None => true,
+                        }
+                })
+                .map(|id| (*id, false));
+        }
+        let Some((id, repeat)) = chosen else {
+            return Ok(None);
+        };
+        if !repeat {
+            self.leases.insert(id, (labeller.to_string(), now));
+        }
+        Ok(Some(Shown {
+            query: self.queries[&id].clone(),
+            swapped: self.swapped(id, labeller, repeat),
+            repeat,
+        }))
+    }
+
+    /// A person's answer: written to disk before this returns; it can be undone for
+    /// `undo_s` seconds. Returns what this person has answered since the desk started.
+    pub fn answer(
+        &mut self,
+        labeller: &str,
+        query: u64,
+        choice: Choice,
+        took_ms: u64,
+        replays: [u32; 2],
+    ) -> Result<u64, Refused> {
+        check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
+        if labeller.trim().is_empty() {
+            return Err(Refused::Invalid("labeller: a name is needed".into()));
+        }
+        let check = self
+            .checks
+            .iter()
+            .position(|c| c.query == query && c.labeller == labeller);
+        let repeat = check.is_some();
+        if !repeat {
+            if self.answered.contains(&query) {
+                return Err(Refused::Answered(query));
+            }
+            if !self.queries.contains_key(&query) {
+                return Err(Refused::Unknown(query));
+            }
+        }
+        let q = self.queries[&query].clone();
+        let swapped = self.swapped(query, labeller, repeat);
+        let preference = match (choice, swapped) {
+            (Choice::Left, false) | (Choice::Right, true) => Preference::First,
+            (Choice::Right, false) | (Choice::Left, true) => Preference::Second,
+            (Choice::Equal, _) => Preference::Equal,
+            (Choice::Skip, _) => Preference::Skip,
+        };
+        let replays = if swapped {
+            [replays[1], replays[0]]
+        } else {
+            replays
+        };
+        let shadow = self
+            .cfg
+            .shadow
+            .then(|| self.oracle.answer(&q.first.truth, &q.second.truth));
+        let a = Answer {
+            query,
+            preference,
+            teacher: "human".into(),
+            teacher_id: self.teacher_id.clone(),
+            took_ms,
+            labeller: labeller.to_string(),
+            replays,
+            shadow,
+            repeat,
+        };
+        let now = now_ms();
+        let stored = (|| -> Result<()> {
+            let tx = self.db.unchecked_transaction()?;
+            tx.execute(
+                "INSERT INTO answers (query, labeller, repeat, message, given_at_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![
+                    query as i64,
+                    labeller,
+                    repeat,
+                    bincode::serde::encode_to_vec(&a, code())?,
+                    now as i64
+                ],
+            )?;
+            if repeat {
+                tx.execute(
+                    "DELETE FROM checks WHERE query = ?1 AND labeller = ?2",
+                    params![query as i64, labeller],
+                )?;
+            }
+            tx.commit()?;
+            Ok(())
+        })();
+        stored.map_err(|e| Refused::Invalid(format!("storing the answer failed: {e:#}")))?;
+        if let Some(k) = check {
+            self.checks.remove(k);
+        } else {
+            self.answered.insert(query);
+            self.leases.remove(&query);
+        }
+        self.given.insert(
+            (query, labeller.to_string(), repeat),
+            Given {
+                answer: a,
+                given_at_ms: now,
+                settled: false,
+                sent_at_ms: 0,
+            },
+        );
+        let person = self.people.entry(labeller.to_string()).or_default();
+        person.answered += 1;
+        person.undone = None;
+        let answered = person.answered;
+        if !repeat && choice != Choice::Skip {
+            self.plan_repeats(query, labeller, answered)
+                .map_err(|e| Refused::Invalid(format!("planning a repeat failed: {e:#}")))?;
+        }
+        Ok(answered)
+    }
+
+    fn plan_repeats(&mut self, query: u64, labeller: &str, answered: u64) -> Result<()> {
+        if self.cfg.repeat_share <= 0.0 || !self.rng.random_bool(self.cfg.repeat_share) {
+            return Ok(());
+        }
+        let now = now_ms();
+        // NOTE: the same person a few pairs later (not the very next: memory is not
+        // consistency); another person active in the last minute, at their next pair.
+        let mut plan = vec![(labeller.to_string(), answered + 3)];
+        if let Some((other, p)) = self
+            .people
+            .iter()
+            .filter(|(name, p)| name.as_str() != labeller && now < p.last_seen_ms + 60_000)
+            .min_by_key(|(name, _)| name.as_str())
+        {
+            plan.push((other.clone(), p.answered));
+        }
+        for (who, due_after) in plan {
+            self.db.execute(
+                "INSERT OR IGNORE INTO checks (query, labeller, due_after) VALUES (?1, ?2, ?3)",
+                params![query as i64, who, due_after as i64],
+            )?;
+            self.checks.push(Check {
+                query,
+                labeller: who,
+                due_after,
+            });
+        }
+        Ok(())
+    }
+
+    /// Withdraw `labeller`'s newest answer still in its undo window; its pair is given back
+    /// to them next.
+    pub fn undo(&mut self, labeller: &str) -> Result<u64, Refused> {
+        let newest = self
+            .given
+            .iter()
+            .filter(|((_, l, _), g)| l == labeller && !g.settled)
+            .max_by_key(|(_, g)| g.given_at_ms)
+            .map(|(k, _)| k.clone());
+        let Some(k) = newest else {
+            return Err(Refused::NothingToUndo);
+        };
+        if now_ms() >= self.given[&k].given_at_ms + self.cfg.undo_s * 1000 {
+            return Err(Refused::NothingToUndo);
+        }
+        let (query, _, repeat) = k.clone();
+        let undone = (|| -> Result<()> {
+            let tx = self.db.unchecked_transaction()?;
+            tx.execute(
+                "DELETE FROM answers WHERE query = ?1 AND labeller = ?2 AND repeat = ?3",
+                params![query as i64, labeller, repeat],
+            )?;
+            if repeat {
+                tx.execute(
+                    "INSERT OR IGNORE INTO checks (query, labeller, due_after) VALUES (?1, ?2, 0)",
+                    params![query as i64, labeller],
+                )?;
+            } else {
+                // NOTE: repeats planned on the withdrawn answer go with it.
+                tx.execute("DELETE FROM checks WHERE query = ?1", [query as i64])?;
+            }
+            tx.commit()?;
+            Ok(())
+        })();
+        undone.map_err(|e| Refused::Invalid(format!("undoing failed: {e:#}")))?;
+        self.given.remove(&k);
+        if repeat {
+            self.checks.push(Check {
+                query,
+                labeller: labeller.to_string(),
+                due_after: 0,
+            });
+        } else {
+            self.answered.remove(&query);
+            self.checks.retain(|c| c.query != query);
+            self.leases.insert(query, (labeller.to_string(), now_ms()));
+        }
+        let person = self.people.entry(labeller.to_string()).or_default();
+        person.answered = person.answered.saturating_sub(1);
+        person.undone = Some((query, repeat));
+        Ok(query)
+    }
+
+    /// The learner's newest status.
+    pub fn learner_status(&mut self, s: LearnerStatus) {
+        let grew = self
+            .status
+            .as_ref()
+            .is_some_and(|(old, _)| s.env_steps > old.env_steps);
+        if grew || self.status.is_none() {
+            self.training = grew;
+        }
+        self.status = Some((s, now_ms()));
+    }
+
+    /// What a page shows: this person's answers since the desk started, the open queries,
+    /// the learner's budget left, whether it trains and waits for labels, who labels.
+    pub fn status(&self, labeller: Option<&str>) -> serde_json::Value {
+        let now = now_ms();
+        let fresh = self
+            .status
+            .as_ref()
+            .filter(|(_, at)| now < at + 5_000)
+            .map(|(s, _)| s);
+        let mut people: Vec<&String> = self
+            .people
+            .iter()
+            .filter(|(_, p)| now < p.last_seen_ms + 30_000)
+            .map(|(n, _)| n)
+            .collect();
+        people.sort();
+        serde_json::json!({
+            "protocol": crate::web::PROTOCOL,
+            "run": self.run,
+            "teacher": self.teacher_id,
+            "open": self.open_queries(),
+            "answered": labeller.and_then(|l| self.people.get(l)).map_or(0, |p| p.answered),
+            "budget_left": fresh.map(|s| s.budget_left),
+            "training": fresh.is_some() && self.training,
+            "env_steps": fresh.map(|s| s.env_steps),
+            "waiting": fresh.is_some_and(|s| s.waiting),
+            "labellers": people,
+        })
+    }
+
+    /// People seen in the last 30 seconds (their liveliness tokens).
+    pub fn present(&self) -> Vec<String> {
+        let now = now_ms();
+        self.people
+            .iter()
+            .filter(|(_, p)| now < p.last_seen_ms + 30_000)
+            .map(|(n, _)| n.clone())
+            .collect()
+    }
+
+    /// Answers not yet acknowledged by the learner.
+    pub fn unacknowledged(&self) -> usize {
+        self.given.len()
+    }
+}

@@ -1,0 +1,315 @@
+//! The labelling page and its HTTP/JSON API (version [`PROTOCOL`]), served by the human
+//! teacher. The page is one file with no build step; any client can use the API instead
+//! (`deploy/label.py` is one). The API changes nothing but answers.
+//!
+//! ```text
+//! GET  /                                   the page
+//! GET  /api/v1/status?labeller=NAME        open queries, answers of NAME, budget left, ...
+//! GET  /api/v1/next?labeller=NAME[&exclude=ID]   a pair to judge (200), or none open (204)
+//! POST /api/v1/answer {"labeller", "query", "choice": left|right|equal|skip,
+//!                      "took_ms", "replays": [left, right]}
+//! POST /api/v1/undo   {"labeller"}         withdraw NAME's last answer (within undo_s)
+//! ```
+//!
+//! Errors are 4xx with `{"error": "..."}`: 400 malformed, 401 no or wrong token, 404 unknown
+//! query, 409 answered already or nothing to undo, 413 a body over 16 KB. With a token,
+//! every API call carries `Authorization: Bearer TOKEN`.
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+
+use anyhow::{bail, Context, Result};
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Query as UrlQuery, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use pbrl_actor::replay::{resimulate, scene, Scene};
+use pbrl_actor::WorldConfig;
+use pbrl_common::wire::Shown as ShownTrajectory;
+use serde::Deserialize;
+
+use crate::human::{Choice, Desk, Refused};
+
+/// The API's version.
+pub const PROTOCOL: u32 = 1;
+
+/// The largest request body read.
+const MAX_BODY: usize = 16 << 10;
+
+const PAGE: &str = include_str!("../assets/label.html");
+
+/// Where and how the page listens.
+#[derive(Clone, Debug)]
+pub struct HttpConfig {
+    pub addr: SocketAddr,
+    /// Needed on any address but loopback.
+    pub token: Option<String>,
+}
+
+impl HttpConfig {
+    /// Refuse a bind beyond loopback without a token.
+    pub fn validate(&self) -> Result<()> {
+        if !self.addr.ip().is_loopback() && self.token.as_deref().is_none_or(str::is_empty) {
+            bail!(
+                "--http {}: listening beyond loopback needs an access token (--token); put it behind TLS too (README)",
+                self.addr
+            );
+        }
+        Ok(())
+    }
+}
+
+/// What the handlers share.
+#[derive(Clone)]
+pub struct Web {
+    pub desk: Arc<Mutex<Desk>>,
+    world: Arc<WorldConfig>,
+    token: Option<Arc<str>>,
+    /// Drawn pairs by query id (the newest few): a page asks for the same pair again.
+    scenes: Arc<Mutex<VecDeque<(u64, Arc<[Scene; 2]>)>>>,
+}
+
+impl Web {
+    pub fn new(desk: Arc<Mutex<Desk>>, world: WorldConfig, token: Option<String>) -> Self {
+        Self {
+            desk,
+            world: Arc::new(world),
+            token: token.map(Arc::from),
+            scenes: Arc::default(),
+        }
+    }
+}
+
+fn error(status: StatusCode, msg: impl Into<String>) -> Response {
+    (status, Json(serde_json::json!({ "error": msg.into() }))).into_response()
+}
+
+fn refused(r: Refused) -> Response {
+    let status = match r {
+        Refused::Unknown(_) => StatusCode::NOT_FOUND,
+        Refused::Answered(_) | Refused::NothingToUndo => StatusCode::CONFLICT,
+        Refused::Invalid(_) => StatusCode::BAD_REQUEST,
+    };
+    error(status, r.to_string())
+}
+
+fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Response> {
+    let Some(token) = &web.token else {
+        return Ok(());
+    };
+    let given = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "));
+    // NOTE: compared in constant time: the token guards a person's labels.
+    let same = given.is_some_and(|g| {
+        g.len() == token.len()
+            && g.bytes()
+                .zip(token.bytes())
+                .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+                == 0
+    });
+    if same {
+        Ok(())
+    } else {
+        Err(error(
+            StatusCode::UNAUTHORIZED,
+            "missing or wrong access token (Authorization: Bearer TOKEN)",
+        ))
+    }
+}
+
+fn lock(desk: &Mutex<Desk>) -> std::sync::MutexGuard<'_, Desk> {
+    desk.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The router of the page and the API.
+pub fn router(web: Web) -> Router {
+    Router::new()
+        .route("/", get(page))
+        .route("/api/v1/status", get(status))
+        .route("/api/v1/next", get(next))
+        .route("/api/v1/answer", post(answer))
+        .route("/api/v1/undo", post(undo))
+        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .with_state(web)
+}
+
+async fn page() -> impl IntoResponse {
+    ([(header::CACHE_CONTROL, "no-store")], Html(PAGE))
+}
+
+#[derive(Deserialize)]
+struct Who {
+    labeller: Option<String>,
+    exclude: Option<u64>,
+}
+
+async fn status(
+    State(web): State<Web>,
+    headers: HeaderMap,
+    UrlQuery(who): UrlQuery<Who>,
+) -> Response {
+    if let Err(r) = authorised(&web, &headers) {
+        return r;
+    }
+    Json(lock(&web.desk).status(who.labeller.as_deref())).into_response()
+}
+
+/// Replay a query's side and check that the replay is the episode the learner sent.
+fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
+    let t = resimulate(world, s.seed, &s.actions)?;
+    let differs = t
+        .rewards
+        .iter()
+        .zip(&s.truth)
+        .any(|(r, truth)| (r.truth - truth).abs() > 1e-3 * (1.0 + truth.abs()));
+    if differs || t.steps() != s.steps() {
+        bail!(
+            "the replay of trajectory {} (seed {}) is not the episode the learner sent: the teacher's world config differs from the actors'",
+            s.id,
+            s.seed
+        );
+    }
+    scene(&t, world)
+}
+
+async fn next(
+    State(web): State<Web>,
+    headers: HeaderMap,
+    UrlQuery(who): UrlQuery<Who>,
+) -> Response {
+    if let Err(r) = authorised(&web, &headers) {
+        return r;
+    }
+    let Some(labeller) = who.labeller else {
+        return error(StatusCode::BAD_REQUEST, "labeller: a name is needed");
+    };
+    let shown = match lock(&web.desk).next(&labeller, who.exclude) {
+        Ok(Some(s)) => s,
+        Ok(None) => return StatusCode::NO_CONTENT.into_response(),
+        Err(r) => return refused(r),
+    };
+    let id = shown.query.id;
+    let cached = web
+        .scenes
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .iter()
+        .find(|(q, _)| *q == id)
+        .map(|(_, s)| s.clone());
+    let scenes = match cached {
+        Some(s) => s,
+        None => {
+            let world = web.world.clone();
+            let q = shown.query.clone();
+            let drawn = tokio::task::spawn_blocking(move || -> Result<[Scene; 2]> {
+                Ok([draw(&world, &q.first)?, draw(&world, &q.second)?])
+            })
+            .await;
+            let scenes = match drawn {
+                Ok(Ok(s)) => Arc::new(s),
+                Ok(Err(e)) => {
+                    tracing::warn!(query = id, error = %format!("{e:#}"), "cannot draw a query");
+                    return error(StatusCode::INTERNAL_SERVER_ERROR, format!("{e:#}"));
+                }
+                Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
+            };
+            let mut cache = web.scenes.lock().unwrap_or_else(|e| e.into_inner());
+            cache.push_back((id, scenes.clone()));
+            if cache.len() > 16 {
+                cache.pop_front();
+            }
+            scenes
+        }
+    };
+    let (left, right) = if shown.swapped {
+        (&scenes[1], &scenes[0])
+    } else {
+        (&scenes[0], &scenes[1])
+    };
+    Json(serde_json::json!({
+        "query": id,
+        "steps": left.steps.max(right.steps),
+        "left": left,
+        "right": right,
+    }))
+    .into_response()
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AnswerBody {
+    labeller: String,
+    query: u64,
+    choice: Choice,
+    #[serde(default)]
+    took_ms: u64,
+    #[serde(default)]
+    replays: [u32; 2],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct UndoBody {
+    labeller: String,
+}
+
+fn parse<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &Bytes) -> Result<T, Response> {
+    let json = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !json {
+        return Err(error(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "the body must be JSON (Content-Type: application/json)",
+        ));
+    }
+    serde_json::from_slice(body)
+        .map_err(|e| error(StatusCode::BAD_REQUEST, format!("malformed body: {e}")))
+}
+
+async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
+    if let Err(r) = authorised(&web, &headers) {
+        return r;
+    }
+    let a: AnswerBody = match parse(&headers, &body) {
+        Ok(a) => a,
+        Err(r) => return r,
+    };
+    // NOTE: a person needs an hour at most per pair; anything longer is a broken clock.
+    let took_ms = a.took_ms.min(3_600_000);
+    let replays = a.replays.map(|r| r.min(1000));
+    match lock(&web.desk).answer(&a.labeller, a.query, a.choice, took_ms, replays) {
+        Ok(answered) => {
+            Json(serde_json::json!({ "ok": true, "answered": answered })).into_response()
+        }
+        Err(r) => refused(r),
+    }
+}
+
+async fn undo(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
+    if let Err(r) = authorised(&web, &headers) {
+        return r;
+    }
+    let u: UndoBody = match parse(&headers, &body) {
+        Ok(u) => u,
+        Err(r) => return r,
+    };
+    match lock(&web.desk).undo(&u.labeller) {
+        Ok(query) => Json(serde_json::json!({ "query": query })).into_response(),
+        Err(r) => refused(r),
+    }
+}
+
+/// Bind the page's address (checked first: beyond loopback only with a token).
+pub async fn bind(cfg: &HttpConfig) -> Result<tokio::net::TcpListener> {
+    cfg.validate()?;
+    tokio::net::TcpListener::bind(cfg.addr)
+        .await
+        .with_context(|| format!("listening on {} for the labelling page", cfg.addr))
+}
