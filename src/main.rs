@@ -29,14 +29,46 @@ enum Command {
     Learner(train::TrainArgs),
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
-    /// Run a scripted teacher alone, answering a run's preference queries over Zenoh.
+    /// Run a teacher alone, answering a run's preference queries over Zenoh: scripted, or
+    /// people at a labelling page (--human).
     Teacher(train::TeacherProcessArgs),
     /// Experiments: a grid of runs (`pbrl exp run GRID.toml`) and its figures (`pbrl exp plot DIR`).
     #[command(subcommand)]
     Exp(exp::ExpCommand),
+    /// The label store of a run: `pbrl labels stats RUN`.
+    #[command(subcommand)]
+    Labels(LabelsCommand),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
     Bench(train::BenchCommand),
+}
+
+#[derive(Subcommand, Debug)]
+enum LabelsCommand {
+    /// Per labeller: answers by kind, answers per minute, time to answer, consistency on
+    /// queries asked again, agreement between labellers and with the oracle's shadow.
+    Stats {
+        /// The run folder (or its labels.sqlite).
+        run: std::path::PathBuf,
+    },
+}
+
+fn labels(cmd: LabelsCommand) -> Result<()> {
+    match cmd {
+        LabelsCommand::Stats { run } => {
+            let path = if run.is_dir() {
+                pbrl_learner::run_folder::RunFolder::new(&run).labels()
+            } else {
+                run
+            };
+            if !path.exists() {
+                anyhow::bail!("no label store at {}", path.display());
+            }
+            let s = pbrl_learner::label_stats::stats(&path)?;
+            print!("{}", pbrl_learner::label_stats::report(&s));
+            Ok(())
+        }
+    }
 }
 
 fn main() -> Result<()> {
@@ -103,6 +135,7 @@ fn main() -> Result<()> {
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
         Command::Bench(cmd) => return train::bench(cmd),
+        Command::Labels(cmd) => return labels(cmd),
         Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
         Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),
         _ => {}
@@ -118,7 +151,7 @@ fn main() -> Result<()> {
             Command::Learner(a) => train::learner(a).await,
             Command::Actor(a) => train::actor(a).await,
             Command::Teacher(a) => train::teacher(a).await,
-            Command::Env(_) | Command::Bench(_) | Command::Exp(_) => {
+            Command::Env(_) | Command::Bench(_) | Command::Exp(_) | Command::Labels(_) => {
                 unreachable!("handled above")
             }
         }

@@ -112,7 +112,7 @@ ALTER TABLE queries ADD COLUMN labeller TEXT;
 ALTER TABLE queries ADD COLUMN replays_first INTEGER;
 ALTER TABLE queries ADD COLUMN replays_second INTEGER;
 ALTER TABLE queries ADD COLUMN shadow TEXT;
-DROP VIEW labels;
+DROP VIEW IF EXISTS labels;
 UPDATE meta SET value = '2' WHERE key = 'schema';
 ";
 
@@ -1082,6 +1082,47 @@ mod tests {
             .unwrap_err();
         assert!(e.to_string().contains("second trajectory"), "{e}");
         assert_eq!(store.counts().unwrap().asked, 2);
+    }
+
+    #[test]
+    fn a_schema_1_store_is_upgraded_in_place_and_keeps_its_labels() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("labels.sqlite");
+        let q = {
+            let mut store = LabelStore::open(&path, "run").unwrap();
+            let q = ask(&mut store, &traj(0, 1, 3), &traj(0, 2, 3));
+            answer(&mut store, q.query, Preference::First);
+            q
+        };
+        // Back to the layout of schema 1, as an older build wrote it.
+        let conn = Connection::open(&path).unwrap();
+        conn.execute_batch(
+            "DROP VIEW labels; DROP TABLE repeats;
+             ALTER TABLE queries DROP COLUMN labeller;
+             ALTER TABLE queries DROP COLUMN replays_first;
+             ALTER TABLE queries DROP COLUMN replays_second;
+             ALTER TABLE queries DROP COLUMN shadow;
+             CREATE VIEW labels AS SELECT id AS query FROM queries;
+             UPDATE meta SET value = '1' WHERE key = 'schema';",
+        )
+        .unwrap();
+        drop(conn);
+        let mut store = LabelStore::open(&path, "run").unwrap();
+        assert_eq!(store.counts().unwrap().first, 1);
+        let a = Answer {
+            labeller: "ann".into(),
+            repeat: true,
+            ..Answer::scripted(q.query, Preference::Second, "human", "human-0", 5)
+        };
+        assert_eq!(store.repeat(&a, 9).unwrap(), Stored::New);
+        assert_eq!(store.repeat(&a, 9).unwrap(), Stored::Repeated);
+        let schema: String = store
+            .conn
+            .query_row("SELECT value FROM meta WHERE key = 'schema'", [], |r| {
+                r.get(0)
+            })
+            .unwrap();
+        assert_eq!(schema, SCHEMA.to_string());
     }
 
     #[test]

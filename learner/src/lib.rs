@@ -11,6 +11,7 @@ pub mod curve;
 pub mod entropy;
 pub mod evaluation;
 pub mod feedback;
+pub mod label_stats;
 pub mod labels;
 pub mod optim;
 pub mod ppo;

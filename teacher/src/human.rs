@@ -708,3 +708,180 @@ impl Desk {
         self.given.len()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pbrl_common::wire::Shown as Side;
+
+    fn query(id: u64, first: f32, second: f32) -> Query {
+        let side = |k: u64, r: f32| Side {
+            id: 2 * id + k,
+            seed: id,
+            policy_version: 1,
+            act_dim: 1,
+            actions: vec![0.0; 2],
+            truth: vec![r, r],
+            replay: None,
+        };
+        Query {
+            id,
+            session: 1,
+            asked_at_ms: 1,
+            expires_at_ms: 0,
+            first: side(0, first),
+            second: side(1, second),
+        }
+    }
+
+    fn desk(path: &Path, f: impl FnOnce(&mut HumanConfig)) -> Desk {
+        let mut cfg = HumanConfig::new(path);
+        cfg.repeat_share = 0.0;
+        f(&mut cfg);
+        Desk::open(cfg, "run", "human-0").unwrap()
+    }
+
+    /// The choice that means `p` on the pair as shown.
+    fn choose(s: &Shown, p: Preference) -> Choice {
+        match (p, s.swapped) {
+            (Preference::First, false) | (Preference::Second, true) => Choice::Left,
+            (Preference::Second, false) | (Preference::First, true) => Choice::Right,
+            (Preference::Equal, _) => Choice::Equal,
+            (Preference::Skip, _) => Choice::Skip,
+        }
+    }
+
+    #[test]
+    fn sides_undo_leases_and_the_oracle_shadow() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut d = desk(&dir.path().join("t.sqlite"), |c| {
+            c.shadow = true;
+            c.undo_s = 3600;
+        });
+        for id in 1..=40 {
+            d.receive(query(id, id as f32, 0.0)).unwrap();
+        }
+        // Sides are shuffled: over 40 queries both ways occur, and a choice maps back.
+        let shown: Vec<Shown> = (0..40)
+            .map(|_| {
+                let s = d.next("ann", None).unwrap().unwrap();
+                d.leases.remove(&s.query.id);
+                d.answered.insert(s.query.id);
+                s
+            })
+            .collect();
+        assert!(shown.iter().any(|s| s.swapped) && shown.iter().any(|s| !s.swapped));
+        d.answered.clear();
+        // Leases: bob is not shown what ann holds.
+        let a = d.next("ann", None).unwrap().unwrap();
+        let b = d.next("bob", None).unwrap().unwrap();
+        assert_ne!(a.query.id, b.query.id);
+        // ann prefers the second trajectory; the store's answer says so whatever the sides.
+        d.answer(
+            "ann",
+            a.query.id,
+            choose(&a, Preference::Second),
+            900,
+            [2, 1],
+        )
+        .unwrap();
+        let g = &d.given[&(a.query.id, "ann".to_string(), false)];
+        assert_eq!(g.answer.preference, Preference::Second);
+        assert_eq!(g.answer.labeller, "ann");
+        // The truth prefers the first (return id against 0): the shadow says first.
+        assert_eq!(g.answer.shadow, Some(Preference::First));
+        assert_eq!(
+            d.answer("bob", a.query.id, Choice::Left, 1, [0, 0]),
+            Err(Refused::Answered(a.query.id))
+        );
+        assert_eq!(
+            d.answer("ann", 999, Choice::Left, 1, [0, 0]),
+            Err(Refused::Unknown(999))
+        );
+        // Undo gives the pair back to ann first; nothing is sent meanwhile.
+        assert_eq!(d.undo("ann"), Ok(a.query.id));
+        assert_eq!(d.undo("ann"), Err(Refused::NothingToUndo));
+        assert_eq!(d.next("ann", None).unwrap().unwrap().query.id, a.query.id);
+        assert!(d.due(1000).unwrap().is_empty());
+        assert!(matches!(d.next("a/b", None), Err(Refused::Invalid(_))));
+    }
+
+    #[test]
+    fn answers_survive_a_restart_until_acknowledged_and_go_once_past_undo() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.sqlite");
+        let (q1, q2) = {
+            let mut d = desk(&path, |c| c.undo_s = 0);
+            for id in [7, 8, 9] {
+                d.receive(query(id, 1.0, 0.0)).unwrap();
+            }
+            let s1 = d.next("ann", None).unwrap().unwrap();
+            d.answer("ann", s1.query.id, Choice::Left, 10, [1, 1])
+                .unwrap();
+            let s2 = d.next("ann", None).unwrap().unwrap();
+            d.answer("ann", s2.query.id, Choice::Equal, 10, [1, 1])
+                .unwrap();
+            // NOTE: dropped without sending: a teacher killed before the learner heard.
+            (s1.query.id, s2.query.id)
+        };
+        let mut d = desk(&path, |c| c.undo_s = 0);
+        assert_eq!(d.open_queries(), 1);
+        let sent = d.due(60_000).unwrap();
+        let mut ids: Vec<u64> = sent.iter().map(|a| a.query).collect();
+        ids.sort();
+        assert_eq!(ids, vec![q1, q2]);
+        // Sent once; again only after the resend interval.
+        assert!(d.due(60_000).unwrap().is_empty());
+        // The learner asks q1 again (it did not hear): the same answer, not a new judgement.
+        let again = d.receive(query(q1, 1.0, 0.0)).unwrap().unwrap();
+        assert_eq!(again.query, q1);
+        assert_eq!(d.acknowledged(&[q1, q2], &[]).unwrap(), 2);
+        assert_eq!(d.unacknowledged(), 0);
+        drop(d);
+        let mut d = desk(&path, |c| c.undo_s = 0);
+        assert!(d.due(0).unwrap().is_empty());
+        assert_eq!(d.open_queries(), 1);
+    }
+
+    #[test]
+    fn a_share_of_answers_is_asked_again_of_the_same_person_and_of_another() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut d = desk(&dir.path().join("t.sqlite"), |c| {
+            c.repeat_share = 1.0;
+            c.undo_s = 0;
+        });
+        for id in 1..=10 {
+            d.receive(query(id, 1.0, 0.0)).unwrap();
+        }
+        // bob is present (asked for a pair); ann answers query 1.
+        let held = d.next("bob", None).unwrap().unwrap();
+        let s = d.next("ann", None).unwrap().unwrap();
+        let first = s.query.id;
+        d.answer("ann", first, Choice::Left, 10, [1, 1]).unwrap();
+        // bob gets it at his next pair (his lease stays his own otherwise).
+        let r = d.next("bob", Some(held.query.id)).unwrap().unwrap();
+        assert!(r.repeat && r.query.id == first);
+        d.answer("bob", first, Choice::Right, 10, [1, 1]).unwrap();
+        // ann gets it again after three more answers, not before.
+        for _ in 0..3 {
+            let s = d.next("ann", None).unwrap().unwrap();
+            assert!(!s.repeat);
+            d.answer("ann", s.query.id, Choice::Skip, 10, [1, 1])
+                .unwrap();
+        }
+        let r = d.next("ann", None).unwrap().unwrap();
+        assert!(r.repeat && r.query.id == first);
+        d.answer("ann", first, Choice::Equal, 10, [1, 1]).unwrap();
+        let repeats: Vec<(String, bool)> = d
+            .due(60_000)
+            .unwrap()
+            .into_iter()
+            .filter(|a| a.query == first)
+            .map(|a| (a.labeller, a.repeat))
+            .collect();
+        assert_eq!(repeats.len(), 3, "{repeats:?}");
+        assert!(repeats.contains(&("bob".into(), true)));
+        assert!(repeats.contains(&("ann".into(), true)));
+        assert!(repeats.contains(&("ann".into(), false)));
+    }
+}
