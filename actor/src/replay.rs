@@ -18,7 +18,7 @@ use crate::WorldConfig;
 /// Run the episode of `seed` again with `actions` (`steps` rows of the action size, as the
 /// policy gave them).
 pub fn resimulate(world: &WorldConfig, seed: u64, actions: &[f32]) -> Result<Trajectory> {
-    if actions.is_empty() || actions.len() % ACT_DIM != 0 {
+    if actions.is_empty() || !actions.len().is_multiple_of(ACT_DIM) {
         bail!(
             "actions: {} numbers are not a positive number of rows of {ACT_DIM}",
             actions.len()

@@ -757,6 +757,44 @@ where
     Ok(())
 }
 
+/// Who is labelling a run now, from the teachers' liveliness tokens (one per person with a
+/// page open; Zenoh removes a token when its teacher's session goes, so a teacher that
+/// dies takes its people with it).
+pub struct Labellers {
+    alive: Arc<Mutex<BTreeSet<String>>>,
+    _subscriber: Subscriber<()>,
+}
+
+impl Labellers {
+    pub async fn watch(session: &Session, keys: &Keys) -> Result<Self> {
+        let alive: Arc<Mutex<BTreeSet<String>>> = Arc::default();
+        let set = alive.clone();
+        let subscriber = session
+            .liveliness()
+            .declare_subscriber(keys.all_labellers())
+            .history(true)
+            .callback(move |s: Sample| {
+                let key = s.key_expr().to_string();
+                let mut set = set.lock().unwrap_or_else(|e| e.into_inner());
+                match s.kind() {
+                    zenoh::sample::SampleKind::Put => set.insert(key),
+                    zenoh::sample::SampleKind::Delete => set.remove(&key),
+                };
+            })
+            .await
+            .map_err(|e| anyhow!("watching the labellers of {keys}: {e}"))?;
+        Ok(Self {
+            alive,
+            _subscriber: subscriber,
+        })
+    }
+
+    /// People labelling now.
+    pub fn count(&self) -> usize {
+        self.alive.lock().unwrap_or_else(|e| e.into_inner()).len()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -821,43 +859,5 @@ mod tests {
         }));
         assert_eq!(r.missing(), 0);
         assert_eq!(ack(&r, 0).next_seq, 8);
-    }
-}
-
-/// Who is labelling a run now, from the teachers' liveliness tokens (one per person with a
-/// page open; Zenoh removes a token when its teacher's session goes, so a teacher that
-/// dies takes its people with it).
-pub struct Labellers {
-    alive: Arc<Mutex<BTreeSet<String>>>,
-    _subscriber: Subscriber<()>,
-}
-
-impl Labellers {
-    pub async fn watch(session: &Session, keys: &Keys) -> Result<Self> {
-        let alive: Arc<Mutex<BTreeSet<String>>> = Arc::default();
-        let set = alive.clone();
-        let subscriber = session
-            .liveliness()
-            .declare_subscriber(keys.all_labellers())
-            .history(true)
-            .callback(move |s: Sample| {
-                let key = s.key_expr().to_string();
-                let mut set = set.lock().unwrap_or_else(|e| e.into_inner());
-                match s.kind() {
-                    zenoh::sample::SampleKind::Put => set.insert(key),
-                    zenoh::sample::SampleKind::Delete => set.remove(&key),
-                };
-            })
-            .await
-            .map_err(|e| anyhow!("watching the labellers of {keys}: {e}"))?;
-        Ok(Self {
-            alive,
-            _subscriber: subscriber,
-        })
-    }
-
-    /// People labelling now.
-    pub fn count(&self) -> usize {
-        self.alive.lock().unwrap_or_else(|e| e.into_inner()).len()
     }
 }

@@ -244,13 +244,14 @@ pub async fn run_human(
                 let present = lock().present();
                 tokens.retain(|name, _| present.contains(name));
                 for name in present {
-                    if !tokens.contains_key(&name) {
+                    if let std::collections::hash_map::Entry::Vacant(e) = tokens.entry(name) {
+                        let key = keys.labeller(&cfg.id, e.key());
                         let token = session
                             .liveliness()
-                            .declare_token(keys.labeller(&cfg.id, &name))
+                            .declare_token(key)
                             .await
-                            .map_err(|e| anyhow::anyhow!("declaring {name}'s liveliness: {e}"))?;
-                        tokens.insert(name, token);
+                            .map_err(|err| anyhow::anyhow!("declaring {}'s liveliness: {err}", e.key()))?;
+                        e.insert(token);
                     }
                 }
             }

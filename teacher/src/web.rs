@@ -62,6 +62,18 @@ impl HttpConfig {
     }
 }
 
+/// A query's two sides, drawn.
+type Drawn = (u64, Arc<[Scene; 2]>);
+
+/// A refusal: its status and message (`{"error": ...}`).
+struct Bad(StatusCode, String);
+
+impl IntoResponse for Bad {
+    fn into_response(self) -> Response {
+        error(self.0, self.1)
+    }
+}
+
 /// What the handlers share.
 #[derive(Clone)]
 pub struct Web {
@@ -69,7 +81,7 @@ pub struct Web {
     world: Arc<WorldConfig>,
     token: Option<Arc<str>>,
     /// Drawn pairs by query id (the newest few): a page asks for the same pair again.
-    scenes: Arc<Mutex<VecDeque<(u64, Arc<[Scene; 2]>)>>>,
+    scenes: Arc<Mutex<VecDeque<Drawn>>>,
 }
 
 impl Web {
@@ -96,7 +108,7 @@ fn refused(r: Refused) -> Response {
     error(status, r.to_string())
 }
 
-fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Response> {
+fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Bad> {
     let Some(token) = &web.token else {
         return Ok(());
     };
@@ -115,9 +127,9 @@ fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Response> {
     if same {
         Ok(())
     } else {
-        Err(error(
+        Err(Bad(
             StatusCode::UNAUTHORIZED,
-            "missing or wrong access token (Authorization: Bearer TOKEN)",
+            "missing or wrong access token (Authorization: Bearer TOKEN)".into(),
         ))
     }
 }
@@ -154,7 +166,7 @@ async fn status(
     UrlQuery(who): UrlQuery<Who>,
 ) -> Response {
     if let Err(r) = authorised(&web, &headers) {
-        return r;
+        return r.into_response();
     }
     Json(lock(&web.desk).status(who.labeller.as_deref())).into_response()
 }
@@ -183,7 +195,7 @@ async fn next(
     UrlQuery(who): UrlQuery<Who>,
 ) -> Response {
     if let Err(r) = authorised(&web, &headers) {
-        return r;
+        return r.into_response();
     }
     let Some(labeller) = who.labeller else {
         return error(StatusCode::BAD_REQUEST, "labeller: a name is needed");
@@ -258,28 +270,28 @@ struct UndoBody {
     labeller: String,
 }
 
-fn parse<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &Bytes) -> Result<T, Response> {
+fn parse<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &Bytes) -> Result<T, Bad> {
     let json = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.starts_with("application/json"));
     if !json {
-        return Err(error(
+        return Err(Bad(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "the body must be JSON (Content-Type: application/json)",
+            "the body must be JSON (Content-Type: application/json)".into(),
         ));
     }
     serde_json::from_slice(body)
-        .map_err(|e| error(StatusCode::BAD_REQUEST, format!("malformed body: {e}")))
+        .map_err(|e| Bad(StatusCode::BAD_REQUEST, format!("malformed body: {e}")))
 }
 
 async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
     if let Err(r) = authorised(&web, &headers) {
-        return r;
+        return r.into_response();
     }
     let a: AnswerBody = match parse(&headers, &body) {
         Ok(a) => a,
-        Err(r) => return r,
+        Err(r) => return r.into_response(),
     };
     // NOTE: a person needs an hour at most per pair; anything longer is a broken clock.
     let took_ms = a.took_ms.min(3_600_000);
@@ -294,11 +306,11 @@ async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Resp
 
 async fn undo(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
     if let Err(r) = authorised(&web, &headers) {
-        return r;
+        return r.into_response();
     }
     let u: UndoBody = match parse(&headers, &body) {
         Ok(u) => u,
-        Err(r) => return r,
+        Err(r) => return r.into_response(),
     };
     match lock(&web.desk).undo(&u.labeller) {
         Ok(query) => Json(serde_json::json!({ "query": query })).into_response(),
