@@ -194,6 +194,10 @@ impl LearnerConfig {
         let bad = |field: &str, value: &dyn std::fmt::Display, why: &str| {
             Err(anyhow::anyhow!("{field} is {value}: {why}"))
         };
+        let scale = self.sac.reward_scale;
+        if !(scale.is_finite() && scale > 0.0) {
+            return bad("sac_reward_scale", &scale, "must be a finite number > 0");
+        }
         if !(p.lambda0.is_finite() && p.lambda0 >= 0.0) {
             return bad("lambda0", &p.lambda0, "must be a finite number >= 0");
         }

@@ -65,9 +65,23 @@ pub struct SacConfig {
         default_value_t = 10
     )]
     pub update_every: u64,
+    /// SAC: the reward trained on is multiplied by this (the SAC paper's reward scale):
+    /// the critics' targets keep the size their learning rate suits when the reward is
+    /// large (Decoupled PEBBLE's lambda_t r_task).
+    #[arg(
+        id = "sac_reward_scale",
+        long = "sac-reward-scale",
+        default_value_t = 1.0
+    )]
+    #[serde(default = "one")]
+    pub reward_scale: f64,
     /// Seed of initialisation, minibatches and sampling noise (the run's `--seed`).
     #[arg(skip)]
     pub seed: u64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl Default for SacConfig {
@@ -79,6 +93,7 @@ impl Default for SacConfig {
             tau: 0.005,
             lr: 3e-4,
             init_alpha: 0.1,
+            reward_scale: 1.0,
             target_entropy: None,
             replay_capacity: 1_000_000,
             random_steps: 600,
@@ -521,6 +536,11 @@ impl Sac {
         let n = self.cfg.batch;
         let batch = self.replay.sample(&mut self.rng, n)?;
         let rew = reward(&batch)?;
+        let rew = if self.cfg.reward_scale == 1.0 {
+            rew
+        } else {
+            (rew * self.cfg.reward_scale)?
+        };
         let Batch {
             obs,
             act,
