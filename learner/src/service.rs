@@ -132,20 +132,26 @@ struct Teachers {
 
 impl Teachers {
     /// Tell teachers (and the people at their pages) where the learner stands.
-    async fn status(&self, f: &Feedback, env_steps: u64, labellers: &Labellers) -> Result<()> {
-        let c = f.counts()?;
-        let s = LearnerStatus {
-            env_steps,
-            asked: c.asked,
-            answered: c.answered,
-            open: c.open,
-            budget_left: f.budget_left(c.asked),
-            waiting: f.waiting(env_steps)?,
-            labellers: labellers.count() as u32,
-        };
+    async fn status(&self, s: LearnerStatus) -> Result<()> {
         self.status.send(&Body::Status(s)).await
     }
+}
 
+/// Where the learner stands (built before any await: the feedback loop is not `Sync`).
+fn status_of(f: &Feedback, env_steps: u64, labellers: &Labellers) -> Result<LearnerStatus> {
+    let c = f.counts()?;
+    Ok(LearnerStatus {
+        env_steps,
+        asked: c.asked,
+        answered: c.answered,
+        open: c.open,
+        budget_left: f.budget_left(c.asked),
+        waiting: f.waiting(env_steps)?,
+        labellers: labellers.count() as u32,
+    })
+}
+
+impl Teachers {
     async fn ask(&self, queries: &[Query]) -> Result<()> {
         for q in queries {
             self.queries.send(&Body::Query(Box::new(q.clone()))).await?;
@@ -377,7 +383,8 @@ pub async fn run(
                 p.eval_retries += evaluation::retry(&session, &keys, &mut curve, &mut actors).await?;
                 if let Some(f) = feedback.as_mut() {
                     teachers.ask(&f.retry()?).await?;
-                    teachers.status(f, p.env_steps, &labellers).await?;
+                    let s = status_of(f, p.env_steps, &labellers)?;
+                    teachers.status(s).await?;
                 }
                 continue;
             }

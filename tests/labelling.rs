@@ -1,0 +1,1206 @@
+//! The human teacher from the outside, as people and their tools meet it: a headless
+//! browser labels with keys and undoes while training runs, the Python client answers a
+//! running learner, a teacher killed mid-sitting loses nothing, and bad HTTP input is
+//! refused and changes nothing.
+//!
+//! Each test runs `pbrl` processes on loopback and speaks HTTP/1.1 to them over a
+//! `TcpStream` (the API, and chromedriver's WebDriver protocol for the browser). The label
+//! store is read with the `sqlite3` command-line tool (or Python's sqlite3 module): the root
+//! package has no SQLite dev-dependency, and `LabelStore` does not show who answered. The
+//! tests run one at a time: two feeding runs beside a browser on 2 cores starve one another.
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use pbrl_common::connect::free_local_port;
+use serde_json::{json, Value};
+
+mod support;
+
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    // NOTE: a failed test poisons the lock; the next one may still run.
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+const CHROMIUM: &str = "/usr/bin/chromium";
+const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
+
+// ---------- processes ----------
+
+/// A child process killed (and reaped) when dropped, so a failed test leaves nothing
+/// running. With `group`, its whole process group goes (chromedriver and its browser).
+struct Proc {
+    child: Child,
+    log: PathBuf,
+    group: bool,
+}
+
+impl Proc {
+    fn kill(&mut self) {
+        if self.child.try_wait().ok().flatten().is_some() {
+            return;
+        }
+        if self.group {
+            let _ = Command::new("kill")
+                .args(["-KILL", "--", &format!("-{}", self.child.id())])
+                .status();
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// The end of its log, for failure messages.
+    fn tail(&self) -> String {
+        tail(&self.log)
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+fn tail(path: &Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let start = text.len().saturating_sub(4000);
+    let start = (start..text.len())
+        .find(|i| text.is_char_boundary(*i))
+        .unwrap_or(text.len());
+    format!("\n--- {} (end) ---\n{}", path.display(), &text[start..])
+}
+
+/// A `pbrl` process in `dir` with `args`, its stderr in `dir/<name>.log`.
+fn pbrl(args: &[String], dir: &Path, name: &str) -> Proc {
+    let log = dir.join(format!("{name}.log"));
+    let file = std::fs::File::create(&log).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_pbrl"))
+        .args(args)
+        .current_dir(dir)
+        .env(
+            "RUST_LOG",
+            "warn,pbrl=info,pbrl_learner=info,pbrl_teacher=info",
+        )
+        .env_remove("PBRL_TOKEN")
+        .stdout(Stdio::null())
+        .stderr(file)
+        .spawn()
+        .expect("the pbrl binary runs");
+    Proc {
+        child,
+        log,
+        group: false,
+    }
+}
+
+/// `pbrl train` on the feeding task, small enough that the first queries come within
+/// seconds (1,000 env steps of pretraining) and long enough to outlast the test.
+fn train_args(out: &Path, run: &str, extra: &[&str]) -> Vec<String> {
+    let mut a: Vec<String> = [
+        "train",
+        "--actors=1",
+        "--steps=200000",
+        "--unsup-steps=1000",
+        "--feedback-interval=1000",
+        "--queries-per-session=5",
+        "--max-open-queries=10",
+        "--query-retry-s=1",
+        "--eval-episodes=0",
+        "--log-every=5000",
+        "--checkpoint-every=0",
+        "--quiet",
+        "--fresh",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    a.push(format!("--run={run}"));
+    a.push(format!("--out={}", out.display()));
+    a.extend(extra.iter().map(|s| s.to_string()));
+    a
+}
+
+/// Poll `f` every 50 ms until it gives a value; panics after `secs` with `what`.
+/// `pbrl train --teacher human` on a free loopback port, with `extra` flags, in `dir`: its
+/// page's address, its run folder and the process.
+fn human_train(dir: &Path, run: &str, extra: &[&str]) -> (String, PathBuf, Proc) {
+    let addr = format!("127.0.0.1:{}", free_local_port().unwrap());
+    let out = dir.join("run");
+    let http = format!("--http={addr}");
+    let mut flags = vec!["--teacher=human", http.as_str()];
+    flags.extend_from_slice(extra);
+    let train = pbrl(&train_args(&out, run, &flags), dir, "train");
+    (addr, out, train)
+}
+
+fn wait_for<T>(secs: u64, what: impl Fn() -> String, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "waited {secs} s for {}", what());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Wait for `child` to exit, at most `secs`.
+fn exit_status(child: &mut Child, secs: u64, what: &str) -> std::process::ExitStatus {
+    wait_for(
+        secs,
+        || format!("{what} to exit"),
+        || child.try_wait().unwrap(),
+    )
+}
+
+// ---------- HTTP/1.1 over a TcpStream ----------
+
+struct Reply {
+    status: u16,
+    body: Vec<u8>,
+}
+
+impl Reply {
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+
+    fn json(&self) -> Value {
+        serde_json::from_slice(&self.body).unwrap_or_else(|e| {
+            panic!(
+                "HTTP {}: the body is not JSON ({e}): {}",
+                self.status,
+                self.text()
+            )
+        })
+    }
+}
+
+fn bad_reply(what: &str) -> std::io::Error {
+    std::io::Error::new(std::io::ErrorKind::InvalidData, what.to_string())
+}
+
+/// One request on its own connection (`Connection: close`); the reply is read up to its
+/// end (Content-Length, the last chunk, or EOF).
+fn http(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: Option<&[u8]>,
+) -> std::io::Result<Reply> {
+    let mut s = TcpStream::connect(addr)?;
+    s.set_read_timeout(Some(Duration::from_secs(120)))?;
+    s.set_write_timeout(Some(Duration::from_secs(30)))?;
+    let mut head =
+        format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAccept: */*\r\n");
+    for (k, v) in headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    if body.is_some() || method == "POST" {
+        head.push_str(&format!(
+            "Content-Length: {}\r\n",
+            body.map_or(0, <[u8]>::len)
+        ));
+    }
+    head.push_str("\r\n");
+    s.write_all(head.as_bytes())?;
+    // NOTE: a server that refuses a large body may answer and close before reading it: a
+    // failed write still leaves its reply to read.
+    let wrote = body.map_or(Ok(()), |b| s.write_all(b));
+    // NOTE: chromedriver keeps the connection open despite `Connection: close`: reading to
+    // EOF would wait for the read timeout at every command.
+    let mut raw = Vec::new();
+    let mut buf = vec![0u8; 64 << 10];
+    loop {
+        if let Some(reply) = parse_reply(&raw, false)? {
+            return Ok(reply);
+        }
+        match s.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => raw.extend_from_slice(&buf[..n]),
+            Err(e) if raw.is_empty() => {
+                wrote?;
+                return Err(e);
+            }
+            Err(_) => break,
+        }
+    }
+    parse_reply(&raw, true)?.ok_or_else(|| bad_reply("the reply ends before its end"))
+}
+
+/// The reply in `raw`, once it is all there (`eof`: no more will come).
+fn parse_reply(raw: &[u8], eof: bool) -> std::io::Result<Option<Reply>> {
+    let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
+        return if eof {
+            Err(bad_reply("no end of the headers"))
+        } else {
+            Ok(None)
+        };
+    };
+    let head = String::from_utf8_lossy(&raw[..end]);
+    let mut lines = head.split("\r\n");
+    let status: u16 = lines
+        .next()
+        .and_then(|l| l.split(' ').nth(1))
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| bad_reply("no status line"))?;
+    let (mut length, mut chunked) = (None, false);
+    for line in lines {
+        if let Some((k, v)) = line.split_once(':') {
+            match k.trim().to_ascii_lowercase().as_str() {
+                "content-length" => length = v.trim().parse::<usize>().ok(),
+                "transfer-encoding" => chunked = v.to_ascii_lowercase().contains("chunked"),
+                _ => {}
+            }
+        }
+    }
+    let rest = &raw[end + 4..];
+    let body = if status == 204 || status == 304 || status < 200 {
+        Some(Vec::new())
+    } else if chunked {
+        dechunk(rest)
+    } else if let Some(n) = length {
+        (rest.len() >= n).then(|| rest[..n].to_vec())
+    } else if eof {
+        Some(rest.to_vec())
+    } else {
+        None
+    };
+    match body {
+        Some(body) => Ok(Some(Reply { status, body })),
+        None if eof => Err(bad_reply("the body is cut short")),
+        None => Ok(None),
+    }
+}
+
+/// A chunked body, once its last chunk is in.
+fn dechunk(mut rest: &[u8]) -> Option<Vec<u8>> {
+    let mut out = Vec::new();
+    loop {
+        let eol = rest.windows(2).position(|w| w == b"\r\n")?;
+        let line = String::from_utf8_lossy(&rest[..eol]).into_owned();
+        let hex = line.split(';').next().unwrap_or("").trim();
+        let size = usize::from_str_radix(hex, 16).ok()?;
+        rest = &rest[eol + 2..];
+        if size == 0 {
+            return Some(out);
+        }
+        if rest.len() < size + 2 {
+            return None;
+        }
+        out.extend_from_slice(&rest[..size]);
+        rest = &rest[size + 2..];
+    }
+}
+
+/// Percent-encoding of a query-string value.
+fn enc(s: &str) -> String {
+    s.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
+/// The human teacher's API at `addr` (with `token`, every call carries it); `log` is the
+/// serving process's, for failure messages.
+struct Api {
+    addr: String,
+    token: Option<String>,
+    log: PathBuf,
+}
+
+impl Api {
+    fn try_call(&self, method: &str, path: &str, body: Option<&Value>) -> std::io::Result<Reply> {
+        let bearer = self.token.as_ref().map(|t| format!("Bearer {t}"));
+        let mut headers = vec![("Content-Type", "application/json")];
+        if let Some(b) = &bearer {
+            headers.push(("Authorization", b.as_str()));
+        }
+        let bytes = body.map(|b| serde_json::to_vec(b).unwrap());
+        http(&self.addr, method, path, &headers, bytes.as_deref())
+    }
+
+    fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Reply {
+        self.try_call(method, path, body).unwrap_or_else(|e| {
+            panic!(
+                "{method} http://{}{path}: {e}{}",
+                self.addr,
+                tail(&self.log)
+            )
+        })
+    }
+
+    fn answer(&self, labeller: &str, query: u64, choice: &str) -> Reply {
+        self.call(
+            "POST",
+            "/api/v1/answer",
+            Some(&json!({
+                "labeller": labeller,
+                "query": query,
+                "choice": choice,
+                "took_ms": 1500,
+                "replays": [1, 0],
+            })),
+        )
+    }
+
+    /// The learner's env steps as the teacher last heard them (waits for a fresh status).
+    fn env_steps(&self, secs: u64) -> u64 {
+        wait_for(
+            secs,
+            || {
+                format!(
+                    "the learner's env steps in /api/v1/status{}",
+                    tail(&self.log)
+                )
+            },
+            || {
+                let r = self.try_call("GET", "/api/v1/status", None).ok()?;
+                (r.status == 200).then(|| r.json()["env_steps"].as_u64())?
+            },
+        )
+    }
+
+    /// A pair for `labeller` (not `exclude`), waiting for the server and the learner's
+    /// first queries.
+    fn pair(&self, labeller: &str, exclude: Option<u64>, secs: u64) -> Value {
+        let path = format!(
+            "/api/v1/next?labeller={}{}",
+            enc(labeller),
+            exclude.map_or(String::new(), |q| format!("&exclude={q}"))
+        );
+        wait_for(
+            secs,
+            || format!("a pair for {labeller}{}", tail(&self.log)),
+            || {
+                let r = self.try_call("GET", &path, None).ok()?;
+                assert!(
+                    r.status == 200 || r.status == 204,
+                    "GET {path}: HTTP {}: {}",
+                    r.status,
+                    r.text()
+                );
+                (r.status == 200).then(|| r.json())
+            },
+        )
+    }
+}
+
+// ---------- the label store ----------
+
+/// `sqlite3 -json` in Python: argv[1] the file (read-only), argv[2] the query.
+const PY_SQL: &str = "import json, sqlite3, sys
+c = sqlite3.connect('file:' + sys.argv[1] + '?mode=ro', uri=True, timeout=5)
+c.row_factory = sqlite3.Row
+rows = [dict(r) for r in c.execute(sys.argv[2])]
+print(json.dumps(rows) if rows else '')";
+
+/// Rows of `query` on the SQLite file `db` (read-only), or why not.
+fn sql(db: &Path, query: &str) -> Result<Vec<Value>, String> {
+    if !db.exists() {
+        return Err(format!("{} does not exist yet", db.display()));
+    }
+    // NOTE: the sqlite3 tool where installed, else Python's sqlite3 module (test 2 needs
+    // python3 anyway).
+    let out = match Command::new("sqlite3")
+        .args(["-readonly", "-json", "-cmd", ".timeout 5000"])
+        .arg(db)
+        .arg(query)
+        .output()
+    {
+        Ok(out) => out,
+        Err(_) => Command::new("python3")
+            .args(["-c", PY_SQL])
+            .arg(db)
+            .arg(query)
+            .output()
+            .map_err(|e| format!("neither sqlite3 nor python3 runs: {e}"))?,
+    };
+    if !out.status.success() {
+        return Err(format!(
+            "sqlite3 {} {query:?}: {}",
+            db.display(),
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    if text.trim().is_empty() {
+        return Ok(Vec::new());
+    }
+    serde_json::from_str(&text).map_err(|e| format!("sqlite3's JSON: {e}: {text}"))
+}
+
+/// The human answers in the label store, in the order stored.
+fn human_answers(db: &Path) -> Result<Vec<Value>, String> {
+    sql(
+        db,
+        "SELECT id, answer, teacher, teacher_id, labeller, took_ms, replays_first, \
+         replays_second, shadow FROM queries \
+         WHERE teacher = 'human' AND answer IS NOT NULL ORDER BY answer_no",
+    )
+}
+
+/// Wait until the store holds `n` human answers (panics on more); then check for
+/// `hold_s` more seconds that no other comes.
+fn wait_for_answers(db: &Path, n: usize, secs: u64, hold_s: u64, log: &Path) -> Vec<Value> {
+    let last = std::cell::RefCell::new(String::new());
+    let rows = wait_for(
+        secs,
+        || {
+            format!(
+                "{n} human answers in the label store (last: {}){}",
+                last.borrow(),
+                tail(log)
+            )
+        },
+        || match human_answers(db) {
+            Ok(rows) => {
+                assert!(rows.len() <= n, "more than {n} answers stored: {rows:?}");
+                *last.borrow_mut() = format!("{rows:?}");
+                (rows.len() == n).then_some(rows)
+            }
+            Err(e) => {
+                *last.borrow_mut() = e;
+                None
+            }
+        },
+    );
+    // NOTE: polled to a deadline: a check that nothing more arrives, not a timing.
+    let until = Instant::now() + Duration::from_secs(hold_s);
+    while Instant::now() < until {
+        let now = human_answers(db).unwrap();
+        assert_eq!(now, rows, "the store changed after holding {n} answers");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    rows
+}
+
+fn ids(rows: &[Value]) -> Vec<u64> {
+    rows.iter().map(|r| r["id"].as_u64().unwrap()).collect()
+}
+
+// ---------- a browser over WebDriver ----------
+
+/// A headless Chromium session through chromedriver; closed (and chromedriver killed with
+/// its process group) when dropped.
+struct Browser {
+    addr: String,
+    session: String,
+    driver: Proc,
+}
+
+fn browser_installed() -> bool {
+    Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists()
+}
+
+impl Browser {
+    fn open(dir: &Path) -> Self {
+        let port = free_local_port().unwrap();
+        let log = dir.join("chromedriver.log");
+        let file = std::fs::File::create(&log).unwrap();
+        let child = {
+            use std::os::unix::process::CommandExt;
+            Command::new(CHROMEDRIVER)
+                .arg(format!("--port={port}"))
+                .stdout(file.try_clone().unwrap())
+                .stderr(file)
+                .process_group(0)
+                .spawn()
+                .unwrap_or_else(|e| panic!("{CHROMEDRIVER} does not start: {e}"))
+        };
+        let driver = Proc {
+            child,
+            log,
+            group: true,
+        };
+        let addr = format!("127.0.0.1:{port}");
+        wait_for(
+            30,
+            || format!("chromedriver to be ready{}", driver.tail()),
+            || {
+                let r = http(&addr, "GET", "/status", &[], None).ok()?;
+                (r.status == 200 && r.json()["value"]["ready"] == json!(true)).then_some(())
+            },
+        );
+        let caps = json!({"capabilities": {"alwaysMatch": {
+            "browserName": "chrome",
+            "goog:chromeOptions": {
+                "binary": CHROMIUM,
+                "args": ["--headless=new", "--no-sandbox", "--disable-gpu",
+                         "--disable-dev-shm-usage", "--window-size=1400,900"],
+            },
+        }}});
+        let r = http(
+            &addr,
+            "POST",
+            "/session",
+            &[("Content-Type", "application/json")],
+            Some(&serde_json::to_vec(&caps).unwrap()),
+        )
+        .unwrap_or_else(|e| panic!("POST /session: {e}{}", driver.tail()));
+        let v = r.json();
+        let session = v["value"]["sessionId"]
+            .as_str()
+            .unwrap_or_else(|| {
+                panic!(
+                    "chromedriver opened no session: HTTP {}: {v}{}",
+                    r.status,
+                    driver.tail()
+                )
+            })
+            .to_string();
+        Self {
+            addr,
+            session,
+            driver,
+        }
+    }
+
+    fn cmd(&self, method: &str, path: &str, body: Option<Value>) -> Value {
+        let path = format!("/session/{}{path}", self.session);
+        let bytes = body.map(|b| serde_json::to_vec(&b).unwrap());
+        let r = http(
+            &self.addr,
+            method,
+            &path,
+            &[("Content-Type", "application/json")],
+            bytes.as_deref(),
+        )
+        .unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}{}", self.driver.tail()));
+        let v = r.json();
+        assert_eq!(r.status, 200, "WebDriver {method} {path}: {v}");
+        v["value"].clone()
+    }
+
+    fn go(&self, url: &str) {
+        self.cmd("POST", "/url", Some(json!({ "url": url })));
+    }
+
+    fn exec(&self, script: &str, args: Value) -> Value {
+        self.cmd(
+            "POST",
+            "/execute/sync",
+            Some(json!({ "script": script, "args": args })),
+        )
+    }
+
+    fn body(&self, field: &str) -> String {
+        self.exec(
+            "return document.body.dataset[arguments[0]] || '';",
+            json!([field]),
+        )
+        .as_str()
+        .unwrap_or_default()
+        .to_string()
+    }
+
+    /// Press and release one key (a character, or WebDriver's code such as `\u{E014}`).
+    fn key(&self, value: &str) {
+        self.cmd(
+            "POST",
+            "/actions",
+            Some(json!({"actions": [{"type": "key", "id": "kb", "actions": [
+                {"type": "keyDown", "value": value},
+                {"type": "keyUp", "value": value},
+            ]}]})),
+        );
+    }
+
+    fn screenshot(&self) -> Vec<u8> {
+        base64(self.cmd("GET", "/screenshot", None).as_str().unwrap())
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        // The browser quits with its session; `driver` (dropped next) kills the rest.
+        let _ = http(
+            &self.addr,
+            "DELETE",
+            &format!("/session/{}", self.session),
+            &[],
+            None,
+        );
+    }
+}
+
+/// Standard base64 (RFC 4648), padding and line breaks ignored.
+fn base64(text: &str) -> Vec<u8> {
+    let mut out = Vec::with_capacity(text.len() / 4 * 3);
+    let (mut acc, mut bits) = (0u32, 0u32);
+    for c in text.bytes() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' => 62,
+            b'/' => 63,
+            b'=' | b'\r' | b'\n' => continue,
+            _ => panic!("{:?} is not base64", c as char),
+        };
+        acc = (acc << 6) | u32::from(v);
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    out
+}
+
+#[test]
+fn base64_decodes_known_values() {
+    // printf 'hello!?' | base64; printf 'pbrl' | base64
+    assert_eq!(base64("aGVsbG8hPw=="), b"hello!?");
+    assert_eq!(base64("cGJybA=="), b"pbrl");
+    assert_eq!(base64(""), b"");
+}
+
+#[test]
+fn replies_are_read_to_their_end() {
+    let whole = b"HTTP/1.1 200 OK\r\nContent-Length: 5\r\n\r\nhello";
+    for cut in 0..whole.len() {
+        assert!(
+            parse_reply(&whole[..cut], false).unwrap().is_none(),
+            "cut at {cut}"
+        );
+    }
+    let r = parse_reply(whole, false).unwrap().unwrap();
+    assert_eq!((r.status, r.text().as_str()), (200, "hello"));
+    let chunked = b"HTTP/1.1 404 Not Found\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n2;x=y\r\nde\r\n0\r\n\r\n";
+    assert!(parse_reply(&chunked[..chunked.len() - 7], false)
+        .unwrap()
+        .is_none());
+    let r = parse_reply(chunked, false).unwrap().unwrap();
+    assert_eq!((r.status, r.text().as_str()), (404, "abcde"));
+    let to_eof = b"HTTP/1.1 200 OK\r\n\r\nall of it";
+    assert!(parse_reply(to_eof, false).unwrap().is_none());
+    assert_eq!(
+        parse_reply(to_eof, true).unwrap().unwrap().text(),
+        "all of it"
+    );
+    let empty = b"HTTP/1.1 204 No Content\r\n\r\n";
+    assert_eq!(parse_reply(empty, false).unwrap().unwrap().body, b"");
+    assert!(parse_reply(b"HTTP/1.1 200 OK\r\nContent-Length: 9\r\n\r\nhal", true).is_err());
+}
+
+// ---------- the tests ----------
+
+const ARROW_RIGHT: &str = "\u{E014}";
+
+#[test]
+fn browser_labels_with_keys_and_undo_while_training_runs() {
+    let _one = one_at_a_time();
+    if !browser_installed() {
+        if std::env::var("PBRL_SKIP_BROWSER").as_deref() == Ok("1") {
+            eprintln!(
+                "PBRL_SKIP_BROWSER=1: no {CHROMIUM} or {CHROMEDRIVER}; the browser test is skipped"
+            );
+            return;
+        }
+        panic!(
+            "the browser test needs {CHROMIUM} and {CHROMEDRIVER}: run deploy/setup.sh \
+             (Debian: apt-get install chromium chromium-driver), or set PBRL_SKIP_BROWSER=1 to skip it"
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // NOTE: an undo window of 2 s, not 1: the skip is undone after its POST returns and a
+    // WebDriver round trip, which on a loaded 2-core machine must not miss the window.
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "browser",
+        &["--undo-s=2", "--repeat-share=0", "--shadow=oracle"],
+    );
+    let api = Api {
+        addr: addr.clone(),
+        token: None,
+        log: train.log.clone(),
+    };
+    let steps_at_start = api.env_steps(60);
+
+    let browser = Browser::open(dir.path());
+    browser.go(&format!("http://{addr}/?labeller=Tess%20T"));
+    browser.exec(
+        "performance.setResourceTimingBufferSize(100000); return null;",
+        json!([]),
+    );
+    let page = |what: &str| {
+        format!(
+            "{what} (page: state {:?}, query {:?}, busy {:?}){}",
+            browser.body("state"),
+            browser.body("query"),
+            browser.body("busy"),
+            train.tail()
+        )
+    };
+    wait_for(
+        120,
+        || page("a pair playing"),
+        || (browser.body("state") == "playing").then_some(()),
+    );
+    // The share of the left side view's canvas that the scene covers (a person must see
+    // the arm, the person and the furniture, not a dot).
+    let drawn = browser
+        .exec(
+            "const c = document.querySelector('#att-left .views canvas'); \
+             const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
+             let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; \
+             return n / (c.width * c.height);",
+            json!([]),
+        )
+        .as_f64()
+        .unwrap_or(0.0);
+    let png = browser.screenshot();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "the screenshot is a PNG");
+    let shots = Path::new(env!("CARGO_MANIFEST_DIR")).join("results/labelling");
+    std::fs::create_dir_all(&shots).unwrap();
+    std::fs::write(shots.join("page.png"), &png).unwrap();
+
+    // The pair after `q`, fetched while `q` plays (answering then shows it at once).
+    let prefetched = |q: &str| {
+        wait_for(
+            60,
+            || page(&format!("the pair after query {q} prefetched")),
+            || {
+                browser
+                    .exec(
+                        "return performance.getEntriesByType('resource').some((e) => \
+                         e.name.includes('/api/v1/next?') && \
+                         e.name.endsWith('exclude=' + arguments[0]) && e.responseStatus === 200);",
+                        json!([q]),
+                    )
+                    .as_bool()
+                    .unwrap_or(false)
+                    .then_some(())
+            },
+        )
+    };
+    // Answer the pair on screen with `key`; the next pair's query.
+    let press = |key: &str, name: &str| -> String {
+        let q = browser.body("query");
+        prefetched(&q);
+        browser.key(key);
+        wait_for(
+            30,
+            || page(&format!("{name} on query {q} sent and the next pair shown")),
+            || {
+                let now = browser.body("query");
+                (browser.body("busy").is_empty() && !now.is_empty() && now != q).then_some(now)
+            },
+        );
+        q
+    };
+    let q1 = press(ARROW_RIGHT, "ArrowRight");
+    let q2 = press("=", "=");
+    let q3 = press("s", "s");
+    browser.key("u");
+    wait_for(
+        30,
+        || page(&format!("the skipped query {q3} back after undo")),
+        || {
+            (browser.body("busy").is_empty()
+                && browser.body("query") == q3
+                && browser.body("state") == "playing")
+                .then_some(())
+        },
+    );
+    let last_answer_ms = browser.exec("return window.pbrlLastAnswerMs;", json!([]));
+    let first_pair_ms = browser.exec("return window.pbrlFirstPairMs;", json!([]));
+    println!(
+        "page: pbrlLastAnswerMs {last_answer_ms} ms (answer key to next pair drawn), \
+         pbrlFirstPairMs {first_pair_ms} ms (page start to first pair, learner's first queries included)"
+    );
+    let last_answer_ms = last_answer_ms
+        .as_f64()
+        .unwrap_or_else(|| panic!("pbrlLastAnswerMs is {last_answer_ms}"));
+    assert!(
+        last_answer_ms < 200.0,
+        "the next pair took {last_answer_ms} ms to show after the answer key"
+    );
+
+    let db = out.join("labels.sqlite");
+    let rows = wait_for_answers(&db, 2, 60, 2 + 3, &train.log);
+    let (q1, q2, q3): (u64, u64, u64) = (
+        q1.parse().unwrap(),
+        q2.parse().unwrap(),
+        q3.parse().unwrap(),
+    );
+    assert_eq!(ids(&rows), [q1, q2], "stored: {rows:?}");
+    let right = rows[0]["answer"].as_str().unwrap();
+    assert!(
+        right == "first" || right == "second",
+        "ArrowRight stored as {right}"
+    );
+    assert_eq!(rows[1]["answer"], "equal");
+    for r in &rows {
+        assert_eq!(r["labeller"], "Tess T", "{r}");
+        assert_eq!(r["teacher"], "human", "{r}");
+        assert!(
+            r["shadow"].as_str().is_some_and(|s| !s.is_empty()),
+            "no shadow answer: {r}"
+        );
+        assert!(r["took_ms"].as_u64().is_some_and(|t| t > 0), "{r}");
+    }
+    let skipped = sql(&db, &format!("SELECT answer FROM queries WHERE id = {q3}")).unwrap();
+    assert_eq!(skipped, [json!({"answer": null})], "the undone skip");
+    assert!(sql(&db, "SELECT * FROM repeats").unwrap().is_empty());
+
+    let steps_at_end = api.env_steps(30);
+    assert!(
+        steps_at_end > steps_at_start,
+        "training stood still while a person labelled: {steps_at_start} -> {steps_at_end} env steps"
+    );
+    println!(
+        "page: the scene covers {:.1}% of the side view",
+        100.0 * drawn
+    );
+    assert!(
+        drawn > 0.02,
+        "the scene covers {:.2}% of the side view: drawn too small to judge (results/labelling/page.png)",
+        100.0 * drawn
+    );
+}
+
+#[test]
+fn python_client_answers_a_running_learner() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let (addr, out, train) = human_train(dir.path(), "python", &["--undo-s=1", "--repeat-share=0"]);
+    let said = dir.path().join("label.out");
+    let mut py = Proc {
+        child: Command::new("python3")
+            .arg("deploy/label.py")
+            .args(["--url", &format!("http://{addr}")])
+            .args(["--name", "py", "--answer", "alternate", "--count", "3"])
+            .args(["--timeout", "60"])
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .stdout(std::fs::File::create(&said).unwrap())
+            .stderr(std::fs::File::create(dir.path().join("label.err")).unwrap())
+            .spawn()
+            .expect("python3 runs"),
+        log: dir.path().join("label.err"),
+        group: false,
+    };
+    let status = exit_status(&mut py.child, 120, "deploy/label.py");
+    let printed = std::fs::read_to_string(&said).unwrap();
+    assert!(
+        status.success(),
+        "deploy/label.py: {status}; stdout: {printed}{}{}",
+        py.tail(),
+        train.tail()
+    );
+    // "answered query 17: left", one line per answer
+    let given: Vec<(u64, String)> = printed
+        .lines()
+        .filter_map(|l| {
+            let (q, choice) = l.strip_prefix("answered query ")?.split_once(": ")?;
+            Some((q.parse().ok()?, choice.to_string()))
+        })
+        .collect();
+    let choices: Vec<&str> = given.iter().map(|(_, c)| c.as_str()).collect();
+    assert_eq!(choices, ["left", "right", "equal"], "printed: {printed}");
+
+    let rows = wait_for_answers(&out.join("labels.sqlite"), 3, 60, 1 + 2, &train.log);
+    let mut stored = ids(&rows);
+    stored.sort();
+    let mut asked: Vec<u64> = given.iter().map(|(q, _)| *q).collect();
+    asked.sort();
+    assert_eq!(stored, asked, "stored: {rows:?}");
+    for r in &rows {
+        assert_eq!(r["labeller"], "py", "{r}");
+        let q = r["id"].as_u64().unwrap();
+        let choice = &given.iter().find(|(g, _)| *g == q).unwrap().1;
+        let a = r["answer"].as_str().unwrap();
+        match choice.as_str() {
+            "equal" => assert_eq!(a, "equal", "{r}"),
+            _ => assert!(a == "first" || a == "second", "{choice} stored as {a}"),
+        }
+    }
+}
+
+#[test]
+fn teacher_killed_mid_sitting_loses_nothing() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
+    let addr = format!("127.0.0.1:{}", free_local_port().unwrap());
+    let out = dir.path().join("run");
+    let run = "sitting";
+    let _train = pbrl(
+        &train_args(
+            &out,
+            run,
+            &["--external-teacher", &format!("--listen={endpoint}")],
+        ),
+        dir.path(),
+        "train",
+    );
+    let state = dir.path().join("t.sqlite");
+    let teacher_args: Vec<String> = [
+        "teacher",
+        "--human",
+        &format!("--run={run}"),
+        &format!("--connect={endpoint}"),
+        &format!("--http={addr}"),
+        "--undo-s=2",
+        "--repeat-share=0",
+        &format!("--teacher-state={}", state.display()),
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let mut teacher = pbrl(&teacher_args, dir.path(), "teacher-1");
+    let api = Api {
+        addr: addr.clone(),
+        token: None,
+        log: teacher.log.clone(),
+    };
+    let db = out.join("labels.sqlite");
+
+    // Two pairs held at once (as the page does), answered back to back, and the teacher
+    // killed at once: inside the undo window, so the answers are only on its disk.
+    let a = api.pair("kim", None, 120)["query"].as_u64().unwrap();
+    let b = api.pair("kim", Some(a), 60)["query"].as_u64().unwrap();
+    assert_ne!(a, b);
+    let steps_before = api.env_steps(30);
+    let r = api.answer("kim", a, "equal");
+    assert_eq!(r.status, 200, "{}", r.text());
+    let r = api.answer("kim", b, "skip");
+    assert_eq!(r.status, 200, "{}", r.text());
+    support::signal(&teacher.child, "-KILL");
+    teacher.child.wait().unwrap();
+    assert_eq!(
+        human_answers(&db).unwrap(),
+        Vec::<Value>::new(),
+        "answers reached the learner inside their undo window"
+    );
+    let kept = sql(&state, "SELECT query FROM answers ORDER BY query").unwrap();
+    let mut ab = [a, b];
+    ab.sort();
+    assert_eq!(
+        kept,
+        ab.iter().map(|q| json!({ "query": q })).collect::<Vec<_>>(),
+        "the killed teacher's disk"
+    );
+
+    // The teacher comes back on its state file and sends what it kept.
+    let teacher = pbrl(&teacher_args, dir.path(), "teacher-2");
+    let api = Api {
+        log: teacher.log.clone(),
+        ..api
+    };
+    let rows = wait_for_answers(&db, 2, 60, 0, &teacher.log);
+    assert_eq!(ids(&rows), [a, b], "stored: {rows:?}");
+    assert_eq!(rows[0]["answer"], "equal");
+    assert_eq!(rows[1]["answer"], "skip");
+    for r in &rows {
+        assert_eq!(r["labeller"], "kim", "{r}");
+    }
+    let once = sql(
+        &db,
+        &format!(
+            "SELECT (SELECT COUNT(*) FROM queries WHERE id IN ({a}, {b}) AND answer IS NOT NULL) AS d, \
+             (SELECT COUNT(*) FROM repeats WHERE query IN ({a}, {b})) AS r"
+        ),
+    )
+    .unwrap();
+    assert_eq!(once, [json!({"d": 2, "r": 0})], "each answer stored once");
+    let steps_after = api.env_steps(60);
+    assert!(
+        steps_after > steps_before,
+        "training stood still while the teacher was down: {steps_before} -> {steps_after} env steps"
+    );
+
+    // And the restarted teacher takes new answers.
+    let c = api.pair("kim", None, 60)["query"].as_u64().unwrap();
+    assert!(c != a && c != b, "answered query {c} shown again");
+    let r = api.answer("kim", c, "left");
+    assert_eq!(r.status, 200, "{}", r.text());
+    let rows = wait_for_answers(&db, 3, 60, 2 + 1, &teacher.log);
+    assert_eq!(ids(&rows), [a, b, c], "stored: {rows:?}");
+    assert_eq!(rows[2]["labeller"], "kim");
+}
+
+#[test]
+fn bad_http_input_is_refused_and_changes_nothing() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+
+    // Beyond loopback without a token: refused before anything is served.
+    let open = format!("0.0.0.0:{}", free_local_port().unwrap());
+    let mut bare = pbrl(
+        &train_args(
+            &dir.path().join("open"),
+            "open",
+            &["--teacher=human", &format!("--http={open}")],
+        ),
+        dir.path(),
+        "open",
+    );
+    let status = exit_status(
+        &mut bare.child,
+        60,
+        "pbrl train --http 0.0.0.0:P without a token",
+    );
+    let said = std::fs::read_to_string(&bare.log).unwrap();
+    assert!(!status.success(), "it ran: {said}");
+    assert!(said.contains("token"), "the error does not say why: {said}");
+
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "bad-input",
+        &["--token=secret", "--undo-s=1", "--repeat-share=0"],
+    );
+    let api = Api {
+        addr: addr.clone(),
+        token: Some("secret".into()),
+        log: train.log.clone(),
+    };
+    let q = api.pair("val", None, 120)["query"].as_u64().unwrap();
+
+    // The token: none or a wrong one is 401, for reads and answers alike.
+    let no_token = Api {
+        addr: addr.clone(),
+        token: None,
+        log: train.log.clone(),
+    };
+    let wrong = Api {
+        addr: addr.clone(),
+        token: Some("secreT".into()),
+        log: train.log.clone(),
+    };
+    for (who, a) in [("no token", &no_token), ("a wrong token", &wrong)] {
+        assert_eq!(
+            a.call("GET", "/api/v1/status", None).status,
+            401,
+            "status with {who}"
+        );
+        assert_eq!(
+            a.call("GET", "/api/v1/next?labeller=val", None).status,
+            401,
+            "next with {who}"
+        );
+        assert_eq!(a.answer("val", q, "left").status, 401, "answer with {who}");
+    }
+    assert_eq!(api.call("GET", "/api/v1/status", None).status, 200);
+
+    let post_raw = |path: &str, content_type: &str, body: &[u8]| -> u16 {
+        http(
+            &addr,
+            "POST",
+            path,
+            &[
+                ("Content-Type", content_type),
+                ("Authorization", "Bearer secret"),
+            ],
+            Some(body),
+        )
+        .unwrap_or_else(|e| panic!("POST {path}: {e}{}", train.tail()))
+        .status
+    };
+    let answer = |v: Value| api.call("POST", "/api/v1/answer", Some(&v)).status;
+    let cases: Vec<(&str, u16)> = vec![
+        (
+            "an unknown query",
+            answer(json!({"labeller": "val", "query": 987_654_321u64, "choice": "left"})),
+        ),
+        (
+            "an unknown choice",
+            answer(json!({"labeller": "val", "query": q, "choice": "maybe"})),
+        ),
+        (
+            "an unknown field",
+            answer(json!({"labeller": "val", "query": q, "choice": "left", "truth": 1})),
+        ),
+        (
+            "a bad labeller name",
+            answer(json!({"labeller": "a/b*", "query": q, "choice": "left"})),
+        ),
+        (
+            "malformed JSON",
+            post_raw(
+                "/api/v1/answer",
+                "application/json",
+                br#"{"labeller": "val", "query": "#,
+            ),
+        ),
+        (
+            "another content type",
+            post_raw(
+                "/api/v1/answer",
+                "text/plain",
+                format!(r#"{{"labeller": "val", "query": {q}, "choice": "left"}}"#).as_bytes(),
+            ),
+        ),
+        (
+            "a body over 16 KB",
+            post_raw(
+                "/api/v1/answer",
+                "application/json",
+                format!(
+                    r#"{{"labeller": "val", "query": {q}, "choice": "left", "pad": "{}"}}"#,
+                    "x".repeat(20 << 10)
+                )
+                .as_bytes(),
+            ),
+        ),
+        (
+            "undo with nothing to undo",
+            api.call("POST", "/api/v1/undo", Some(&json!({"labeller": "val"})))
+                .status,
+        ),
+        (
+            "next without a labeller",
+            api.call("GET", "/api/v1/next", None).status,
+        ),
+        (
+            "next for a bad labeller name",
+            api.call(
+                "GET",
+                &format!("/api/v1/next?labeller={}", enc("a/b*")),
+                None,
+            )
+            .status,
+        ),
+    ];
+    let want = [404, 400, 400, 400, 400, 415, 413, 409, 400, 400];
+    for ((what, got), want) in cases.iter().zip(want) {
+        assert_eq!(*got, want, "{what}: HTTP {got}, not {want}");
+    }
+
+    // One valid answer; the same again, by anyone, is 409.
+    let r = api.answer("val", q, "left");
+    assert_eq!(r.status, 200, "{}", r.text());
+    assert_eq!(r.json()["answered"], 1);
+    assert_eq!(api.answer("val", q, "right").status, 409, "answered twice");
+    assert_eq!(
+        api.answer("other", q, "right").status,
+        409,
+        "answered by another"
+    );
+    assert_eq!(
+        api.call("POST", "/api/v1/undo", Some(&json!({"labeller": "other"})))
+            .status,
+        409,
+        "undo by one who answered nothing"
+    );
+
+    // The store ends with that one answer and nothing else.
+    let rows = wait_for_answers(&out.join("labels.sqlite"), 1, 60, 1 + 3, &train.log);
+    assert_eq!(ids(&rows), [q]);
+    assert_eq!(rows[0]["labeller"], "val");
+    let a = rows[0]["answer"].as_str().unwrap();
+    assert!(a == "first" || a == "second", "left stored as {a}");
+}
