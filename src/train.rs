@@ -178,6 +178,17 @@ impl LearnArgs {
         if self.task == Task::Point {
             config::apply_preset(&mut cfg, &point_preset(), &self.explicit)?;
         }
+        // NOTE: Decoupled PEBBLE trains on lambda_t r_task + r_hat with lambda_0 15: SAC's
+        // critics then chase targets 15 times the task baseline's, and learn them slower
+        // at the same learning rate. Scaled by 1 / lambda_0 they keep the baseline's size
+        // (measured on feeding, 3 seeds at 1M env steps: success 0.60 against 0.46).
+        let scaled = self.algo == Algo::Sac
+            && self.reward == RewardSource::Decoupled
+            && self.preset != "paper"
+            && !self.explicit.contains("sac_reward_scale");
+        if scaled {
+            cfg.sac.reward_scale = 1.0 / cfg.pref.lambda0.max(1.0);
+        }
         cfg.validate()?;
         Ok(cfg)
     }

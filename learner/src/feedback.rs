@@ -702,3 +702,71 @@ fn shown(c: &Candidate, id: u64) -> Shown {
         replay: None,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pbrl_common::{StepRewards, Trajectory};
+    use std::path::Path;
+
+    fn msg(seq: u64) -> TrajectoryMsg {
+        let steps = 3;
+        TrajectoryMsg {
+            actor: 0,
+            incarnation: 1,
+            seq,
+            oldest: 0,
+            trajectory: Trajectory {
+                format: pbrl_common::trajectory::TRAJECTORY_FORMAT,
+                seed: seq,
+                policy_version: 1,
+                obs_dim: 2,
+                act_dim: 1,
+                obs: vec![seq as f32; (steps + 1) * 2],
+                actions: vec![0.5; steps],
+                rewards: vec![StepRewards::default(); steps],
+                ..Trajectory::default()
+            },
+        }
+    }
+
+    #[test]
+    fn open_queries_are_bounded_and_a_due_session_waits_for_answers() {
+        let cfg = PrefConfig {
+            unsup_steps: 0,
+            queries_per_session: 30,
+            feedback_interval: 100,
+            max_open_queries: 50,
+            ..PrefConfig::default()
+        };
+        let mut f = Feedback::new(&cfg, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
+        for seq in 0..40 {
+            f.observe(&msg(seq));
+        }
+        let mut asked = Vec::new();
+        for env_steps in [0, 100, 200, 300] {
+            if let Some(done) = f.start(env_steps, true).unwrap() {
+                asked.extend(f.finish(done, env_steps).unwrap().0);
+            }
+            assert!(f.open() <= 50, "{} open at {env_steps}", f.open());
+        }
+        // 30, then the 20 the bound leaves; then the sessions wait: nobody answered.
+        assert_eq!(asked.len(), 50);
+        assert_eq!(f.open(), 50);
+        assert!(f.waiting(400).unwrap());
+        assert!(f.start(400, true).unwrap().is_none());
+        // One answer makes room for one query.
+        let a = Answer::scripted(asked[0].id, Preference::First, "oracle", "o-0", 1);
+        assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+        assert!(!f.waiting(400).unwrap());
+        let mut more = Vec::new();
+        for _ in 0..2 {
+            // NOTE: the first job may be the training on the new label.
+            if let Some(done) = f.start(400, true).unwrap() {
+                more.extend(f.finish(done, 400).unwrap().0);
+            }
+        }
+        assert_eq!(more.len(), 1);
+        assert!(f.waiting(500).unwrap());
+    }
+}

@@ -67,7 +67,8 @@ pub struct SacConfig {
     pub update_every: u64,
     /// SAC: the reward trained on is multiplied by this (the SAC paper's reward scale):
     /// the critics' targets keep the size their learning rate suits when the reward is
-    /// large (Decoupled PEBBLE's lambda_t r_task).
+    /// large. Decoupled PEBBLE's default is 1 / lambda_0 (its lambda_t r_task is lambda_0
+    /// times the task baseline's reward), 1 elsewhere and in `--preset paper`.
     #[arg(
         id = "sac_reward_scale",
         long = "sac-reward-scale",
