@@ -1,7 +1,7 @@
 //! The human teacher from the outside, as people and their tools meet it: a headless
 //! browser labels with keys and undoes while training runs, the Python client answers a
-//! running learner, a teacher killed mid-sitting loses nothing, and bad HTTP input is
-//! refused and changes nothing.
+//! running learner, a teacher killed mid-sitting loses nothing (its page, never reloaded,
+//! carries on with the restarted one), and bad HTTP input is refused and changes nothing.
 //!
 //! Each test runs `pbrl` processes on loopback and speaks HTTP/1.1 to them over a
 //! `TcpStream` (the API, and chromedriver's WebDriver protocol for the browser). The label
@@ -126,7 +126,6 @@ fn train_args(out: &Path, run: &str, extra: &[&str]) -> Vec<String> {
     a
 }
 
-/// Poll `f` every 50 ms until it gives a value; panics after `secs` with `what`.
 /// `pbrl train --teacher human` on a free loopback port, with `extra` flags, in `dir`: its
 /// page's address, its run folder and the process.
 fn human_train(dir: &Path, run: &str, extra: &[&str]) -> (String, PathBuf, Proc) {
@@ -139,6 +138,7 @@ fn human_train(dir: &Path, run: &str, extra: &[&str]) -> (String, PathBuf, Proc)
     (addr, out, train)
 }
 
+/// Poll `f` every 50 ms until it gives a value; panics after `secs` with `what`.
 fn wait_for<T>(secs: u64, what: impl Fn() -> String, mut f: impl FnMut() -> Option<T>) -> T {
     let deadline = Instant::now() + Duration::from_secs(secs);
     loop {
@@ -500,8 +500,20 @@ struct Browser {
     driver: Proc,
 }
 
-fn browser_installed() -> bool {
-    Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists()
+/// Whether the browser can run: panics when it is not installed, unless
+/// `PBRL_SKIP_BROWSER=1` (then `part` is skipped).
+fn browser_wanted(part: &str) -> bool {
+    if Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists() {
+        return true;
+    }
+    if std::env::var("PBRL_SKIP_BROWSER").as_deref() == Ok("1") {
+        eprintln!("PBRL_SKIP_BROWSER=1: no {CHROMIUM} or {CHROMEDRIVER}; {part} is skipped");
+        return false;
+    }
+    panic!(
+        "the browser test needs {CHROMIUM} and {CHROMEDRIVER}: run deploy/setup.sh \
+         (Debian: apt-get install chromium chromium-driver), or set PBRL_SKIP_BROWSER=1 to skip it"
+    );
 }
 
 impl Browser {
@@ -620,6 +632,99 @@ impl Browser {
     fn screenshot(&self) -> Vec<u8> {
         base64(self.cmd("GET", "/screenshot", None).as_str().unwrap())
     }
+
+    /// Open the labelling page at `addr` as `labeller`, keeping every resource timing (see
+    /// [`Browser::prefetched`]).
+    fn label(&self, addr: &str, labeller: &str) {
+        self.go(&format!("http://{addr}/?labeller={}", enc(labeller)));
+        self.exec(
+            "performance.setResourceTimingBufferSize(100000); return null;",
+            json!([]),
+        );
+    }
+
+    /// The page's "teacher unreachable" banner shows.
+    fn unreachable(&self) -> bool {
+        self.exec("return !document.getElementById('conn').hidden;", json!([]))
+            .as_bool()
+            .unwrap_or(false)
+    }
+
+    /// `what` with the page's state and the end of `log` (the teacher's), for failures.
+    fn page(&self, what: &str, log: &Path) -> String {
+        format!(
+            "{what} (page: state {:?}, query {:?}, busy {:?}, unreachable {}, message {}){}",
+            self.body("state"),
+            self.body("query"),
+            self.body("busy"),
+            self.unreachable(),
+            self.exec(
+                "return document.getElementById('msg').textContent;",
+                json!([])
+            ),
+            tail(log)
+        )
+    }
+
+    /// Wait until the page reaches its teacher and plays a pair with no answer in flight;
+    /// the pair's query.
+    fn playing(&self, secs: u64, what: &str, log: &Path) -> String {
+        wait_for(
+            secs,
+            || self.page(what, log),
+            || {
+                let q = self.body("query");
+                (self.body("state") == "playing"
+                    && self.body("busy").is_empty()
+                    && !q.is_empty()
+                    && !self.unreachable())
+                .then_some(q)
+            },
+        )
+    }
+
+    /// Wait until the pair after `q` is fetched while `q` plays (answering then shows it
+    /// at once).
+    fn prefetched(&self, q: &str, log: &Path) {
+        wait_for(
+            60,
+            || self.page(&format!("the pair after query {q} prefetched"), log),
+            || {
+                self.exec(
+                    "return performance.getEntriesByType('resource').some((e) => \
+                     e.name.includes('/api/v1/next?') && \
+                     e.name.endsWith('exclude=' + arguments[0]) && e.responseStatus === 200);",
+                    json!([q]),
+                )
+                .as_bool()
+                .unwrap_or(false)
+                .then_some(())
+            },
+        )
+    }
+
+    /// Answer the pair on screen with `key` (`name` in messages) and wait until its POST
+    /// is through and the next pair shows; the answered query.
+    fn press(&self, key: &str, name: &str, log: &Path) -> u64 {
+        let q = self.body("query");
+        self.prefetched(&q, log);
+        self.key(key);
+        wait_for(
+            60,
+            || {
+                self.page(
+                    &format!("{name} on query {q} sent and the next pair shown"),
+                    log,
+                )
+            },
+            || {
+                let now = self.body("query");
+                (self.body("busy").is_empty() && !now.is_empty() && now != q).then_some(now)
+            },
+        );
+        q.parse()
+            .unwrap_or_else(|e| panic!("the page's query {q:?}: {e}"))
+    }
 }
 
 impl Drop for Browser {
@@ -703,17 +808,8 @@ const ARROW_RIGHT: &str = "\u{E014}";
 #[test]
 fn browser_labels_with_keys_and_undo_while_training_runs() {
     let _one = one_at_a_time();
-    if !browser_installed() {
-        if std::env::var("PBRL_SKIP_BROWSER").as_deref() == Ok("1") {
-            eprintln!(
-                "PBRL_SKIP_BROWSER=1: no {CHROMIUM} or {CHROMEDRIVER}; the browser test is skipped"
-            );
-            return;
-        }
-        panic!(
-            "the browser test needs {CHROMIUM} and {CHROMEDRIVER}: run deploy/setup.sh \
-             (Debian: apt-get install chromium chromium-driver), or set PBRL_SKIP_BROWSER=1 to skip it"
-        );
+    if !browser_wanted("the browser test") {
+        return;
     }
     let dir = tempfile::tempdir().unwrap();
     // NOTE: an undo window of 2 s, not 1: the skip is undone after its POST returns and a
@@ -731,25 +827,8 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
     let steps_at_start = api.env_steps(60);
 
     let browser = Browser::open(dir.path());
-    browser.go(&format!("http://{addr}/?labeller=Tess%20T"));
-    browser.exec(
-        "performance.setResourceTimingBufferSize(100000); return null;",
-        json!([]),
-    );
-    let page = |what: &str| {
-        format!(
-            "{what} (page: state {:?}, query {:?}, busy {:?}){}",
-            browser.body("state"),
-            browser.body("query"),
-            browser.body("busy"),
-            train.tail()
-        )
-    };
-    wait_for(
-        120,
-        || page("a pair playing"),
-        || (browser.body("state") == "playing").then_some(()),
-    );
+    browser.label(&addr, "Tess T");
+    browser.playing(120, "a pair playing", &train.log);
     // The share of the left side view's canvas that the scene covers (a person must see
     // the arm, the person and the furniture, not a dot).
     let drawn = browser
@@ -768,50 +847,21 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
     std::fs::create_dir_all(&shots).unwrap();
     std::fs::write(shots.join("page.png"), &png).unwrap();
 
-    // The pair after `q`, fetched while `q` plays (answering then shows it at once).
-    let prefetched = |q: &str| {
-        wait_for(
-            60,
-            || page(&format!("the pair after query {q} prefetched")),
-            || {
-                browser
-                    .exec(
-                        "return performance.getEntriesByType('resource').some((e) => \
-                         e.name.includes('/api/v1/next?') && \
-                         e.name.endsWith('exclude=' + arguments[0]) && e.responseStatus === 200);",
-                        json!([q]),
-                    )
-                    .as_bool()
-                    .unwrap_or(false)
-                    .then_some(())
-            },
-        )
-    };
-    // Answer the pair on screen with `key`; the next pair's query.
-    let press = |key: &str, name: &str| -> String {
-        let q = browser.body("query");
-        prefetched(&q);
-        browser.key(key);
-        wait_for(
-            30,
-            || page(&format!("{name} on query {q} sent and the next pair shown")),
-            || {
-                let now = browser.body("query");
-                (browser.body("busy").is_empty() && !now.is_empty() && now != q).then_some(now)
-            },
-        );
-        q
-    };
-    let q1 = press(ARROW_RIGHT, "ArrowRight");
-    let q2 = press("=", "=");
-    let q3 = press("s", "s");
+    let q1 = browser.press(ARROW_RIGHT, "ArrowRight", &train.log);
+    let q2 = browser.press("=", "=", &train.log);
+    let q3 = browser.press("s", "s", &train.log);
     browser.key("u");
     wait_for(
-        30,
-        || page(&format!("the skipped query {q3} back after undo")),
+        60,
+        || {
+            browser.page(
+                &format!("the skipped query {q3} back after undo"),
+                &train.log,
+            )
+        },
         || {
             (browser.body("busy").is_empty()
-                && browser.body("query") == q3
+                && browser.body("query") == q3.to_string()
                 && browser.body("state") == "playing")
                 .then_some(())
         },
@@ -832,11 +882,6 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
 
     let db = out.join("labels.sqlite");
     let rows = wait_for_answers(&db, 2, 60, 2 + 3, &train.log);
-    let (q1, q2, q3): (u64, u64, u64) = (
-        q1.parse().unwrap(),
-        q2.parse().unwrap(),
-        q3.parse().unwrap(),
-    );
     assert_eq!(ids(&rows), [q1, q2], "stored: {rows:?}");
     let right = rows[0]["answer"].as_str().unwrap();
     assert!(
@@ -933,6 +978,7 @@ fn python_client_answers_a_running_learner() {
 #[test]
 fn teacher_killed_mid_sitting_loses_nothing() {
     let _one = one_at_a_time();
+    let with_browser = browser_wanted("the browser part");
     let dir = tempfile::tempdir().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
     let addr = format!("127.0.0.1:{}", free_local_port().unwrap());
@@ -948,13 +994,16 @@ fn teacher_killed_mid_sitting_loses_nothing() {
         "train",
     );
     let state = dir.path().join("t.sqlite");
+    // NOTE: an undo window of 5 s: the page's answer must still be in it at the kill, after
+    // the WebDriver round trips that see its POST through on a loaded 2-core machine.
+    let undo_s = 5;
     let teacher_args: Vec<String> = [
         "teacher",
         "--human",
         &format!("--run={run}"),
         &format!("--connect={endpoint}"),
         &format!("--http={addr}"),
-        "--undo-s=2",
+        &format!("--undo-s={undo_s}"),
         "--repeat-share=0",
         &format!("--teacher-state={}", state.display()),
     ]
@@ -969,31 +1018,78 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     };
     let db = out.join("labels.sqlite");
 
-    // Two pairs held at once (as the page does), answered back to back, and the teacher
-    // killed at once: inside the undo window, so the answers are only on its disk.
+    // A person at the page in a browser: a pair plays, the next one is fetched.
+    const PERSON: &str = "Pat P";
+    let browser = with_browser.then(|| Browser::open(dir.path()));
+    if let Some(page) = &browser {
+        page.label(&addr, PERSON);
+        page.playing(120, "a pair playing", &teacher.log);
+    }
+    // And two pairs held at once by kim over HTTP (as the page does).
     let a = api.pair("kim", None, 120)["query"].as_u64().unwrap();
     let b = api.pair("kim", Some(a), 60)["query"].as_u64().unwrap();
     assert_ne!(a, b);
     let steps_before = api.env_steps(30);
+
+    // The person answers with a key, kim answers both, and the teacher is killed at once:
+    // inside the undo window, so the answers are only on its disk.
+    let p = browser
+        .as_ref()
+        .map(|page| page.press(ARROW_RIGHT, "ArrowRight", &teacher.log));
     let r = api.answer("kim", a, "equal");
     assert_eq!(r.status, 200, "{}", r.text());
     let r = api.answer("kim", b, "skip");
     assert_eq!(r.status, 200, "{}", r.text());
     support::signal(&teacher.child, "-KILL");
+    let killed_at_ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
     teacher.child.wait().unwrap();
+
+    // Who gave each answer and what it may be stored as.
+    let either: &[&str] = &["first", "second"];
+    let mut want: Vec<(u64, &str, &[&str])> = vec![(a, "kim", &["equal"]), (b, "kim", &["skip"])];
+    want.extend(p.map(|p| (p, PERSON, either)));
+    let sorted = |mut v: Vec<u64>| {
+        v.sort();
+        v
+    };
+    let kept = sql(
+        &state,
+        "SELECT query, labeller, given_at_ms FROM answers ORDER BY query",
+    )
+    .unwrap();
+    for k in &kept {
+        let age = killed_at_ms.saturating_sub(k["given_at_ms"].as_u64().unwrap());
+        assert!(
+            age < undo_s * 1000,
+            "an answer was {age} ms old at the kill, past the {undo_s} s undo window: {k}"
+        );
+        let q = k["query"].as_u64().unwrap();
+        let who = want.iter().find(|w| w.0 == q).map(|w| w.1);
+        assert_eq!(Some(k["labeller"].as_str().unwrap()), who, "{k}");
+    }
+    assert_eq!(
+        kept.iter()
+            .map(|k| k["query"].as_u64().unwrap())
+            .collect::<Vec<_>>(),
+        sorted(want.iter().map(|w| w.0).collect()),
+        "the killed teacher's disk"
+    );
     assert_eq!(
         human_answers(&db).unwrap(),
         Vec::<Value>::new(),
         "answers reached the learner inside their undo window"
     );
-    let kept = sql(&state, "SELECT query FROM answers ORDER BY query").unwrap();
-    let mut ab = [a, b];
-    ab.sort();
-    assert_eq!(
-        kept,
-        ab.iter().map(|q| json!({ "query": q })).collect::<Vec<_>>(),
-        "the killed teacher's disk"
-    );
+    // The page notices (its status poll fails) and says so.
+    if let Some(page) = &browser {
+        wait_for(
+            60,
+            || page.page("the page to say the teacher is unreachable", &teacher.log),
+            || page.unreachable().then_some(()),
+        );
+    }
 
     // The teacher comes back on its state file and sends what it kept.
     let teacher = pbrl(&teacher_args, dir.path(), "teacher-2");
@@ -1001,36 +1097,76 @@ fn teacher_killed_mid_sitting_loses_nothing() {
         log: teacher.log.clone(),
         ..api
     };
-    let rows = wait_for_answers(&db, 2, 60, 0, &teacher.log);
-    assert_eq!(ids(&rows), [a, b], "stored: {rows:?}");
-    assert_eq!(rows[0]["answer"], "equal");
-    assert_eq!(rows[1]["answer"], "skip");
-    for r in &rows {
-        assert_eq!(r["labeller"], "kim", "{r}");
-    }
-    let once = sql(
-        &db,
-        &format!(
-            "SELECT (SELECT COUNT(*) FROM queries WHERE id IN ({a}, {b}) AND answer IS NOT NULL) AS d, \
-             (SELECT COUNT(*) FROM repeats WHERE query IN ({a}, {b})) AS r"
-        ),
-    )
-    .unwrap();
-    assert_eq!(once, [json!({"d": 2, "r": 0})], "each answer stored once");
+    let check = |rows: &[Value], want: &[(u64, &str, &[&str])]| {
+        assert_eq!(
+            sorted(ids(rows)),
+            sorted(want.iter().map(|w| w.0).collect()),
+            "stored: {rows:?}"
+        );
+        for (q, labeller, answers) in want {
+            // cannot fire: the stored ids are the wanted ones (checked above)
+            let r = rows.iter().find(|r| r["id"] == *q).unwrap();
+            assert_eq!(r["labeller"], *labeller, "{r}");
+            assert!(
+                answers.iter().any(|x| r["answer"] == *x),
+                "query {q} stored as {}, not one of {answers:?}",
+                r["answer"]
+            );
+        }
+    };
+    check(
+        &wait_for_answers(&db, want.len(), 60, 0, &teacher.log),
+        &want,
+    );
     let steps_after = api.env_steps(60);
     assert!(
         steps_after > steps_before,
         "training stood still while the teacher was down: {steps_before} -> {steps_after} env steps"
     );
 
-    // And the restarted teacher takes new answers.
+    // The page, never reloaded, reaches the new teacher and plays a pair: the person
+    // answers it with a key.
+    if let Some(page) = &browser {
+        page.playing(120, "the page back with a pair", &teacher.log);
+        let q = page.press("=", "=", &teacher.log);
+        want.push((q, PERSON, &["equal"]));
+        check(
+            &wait_for_answers(&db, want.len(), 60, 0, &teacher.log),
+            &want,
+        );
+    }
+
+    // And the restarted teacher takes new answers over HTTP.
     let c = api.pair("kim", None, 60)["query"].as_u64().unwrap();
-    assert!(c != a && c != b, "answered query {c} shown again");
+    assert!(
+        want.iter().all(|w| w.0 != c),
+        "answered query {c} shown again"
+    );
     let r = api.answer("kim", c, "left");
     assert_eq!(r.status, 200, "{}", r.text());
-    let rows = wait_for_answers(&db, 3, 60, 2 + 1, &teacher.log);
-    assert_eq!(ids(&rows), [a, b, c], "stored: {rows:?}");
-    assert_eq!(rows[2]["labeller"], "kim");
+    want.push((c, "kim", either));
+    check(
+        &wait_for_answers(&db, want.len(), 60, 2 + 1, &teacher.log),
+        &want,
+    );
+    let all = want
+        .iter()
+        .map(|w| w.0.to_string())
+        .collect::<Vec<_>>()
+        .join(", ");
+    let once = sql(
+        &db,
+        &format!(
+            "SELECT (SELECT COUNT(*) FROM queries WHERE id IN ({all}) AND answer IS NOT NULL) AS d, \
+             (SELECT COUNT(*) FROM repeats WHERE query IN ({all})) AS r"
+        ),
+    )
+    .unwrap();
+    assert_eq!(
+        once,
+        [json!({"d": want.len(), "r": 0})],
+        "each answer stored once"
+    );
 }
 
 #[test]

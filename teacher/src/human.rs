@@ -90,6 +90,8 @@ pub enum Refused {
     Unknown(u64),
     #[error("query {0} is answered already")]
     Answered(u64),
+    #[error("query {0} was answered by another labeller first; this answer is not recorded")]
+    AnsweredByOther(u64),
     #[error("nothing to undo")]
     NothingToUndo,
     #[error("{0}")]
@@ -165,6 +167,11 @@ CREATE TABLE IF NOT EXISTS answers (
     message BLOB NOT NULL,
     given_at_ms INTEGER NOT NULL,
     PRIMARY KEY (query, labeller, repeat)
+);
+CREATE TABLE IF NOT EXISTS leases (
+    query INTEGER PRIMARY KEY,
+    labeller TEXT NOT NULL,
+    at_ms INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS checks (
     query INTEGER NOT NULL,
@@ -252,6 +259,16 @@ impl Desk {
                 },
             );
         }
+        let rows: Vec<(i64, String, i64)> = self
+            .db
+            .prepare("SELECT query, labeller, at_ms FROM leases")?
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
+            .collect::<rusqlite::Result<_>>()?;
+        // NOTE: a pair on someone's open page stays theirs across a restart.
+        self.leases = rows
+            .into_iter()
+            .map(|(q, who, at)| (q as u64, (who, at as u64)))
+            .collect();
         let rows: Vec<(i64, String, i64)> = self
             .db
             .prepare("SELECT query, labeller, due_after FROM checks")?
@@ -384,6 +401,8 @@ impl Desk {
         for id in expired {
             self.db
                 .execute("DELETE FROM queries WHERE id = ?1", [id as i64])?;
+            self.db
+                .execute("DELETE FROM leases WHERE query = ?1", [id as i64])?;
             self.queries.remove(&id);
             self.leases.remove(&id);
         }
@@ -453,8 +472,14 @@ impl Desk {
         let Some((id, repeat)) = chosen else {
             return Ok(None);
         };
-        if !repeat {
+        if !repeat && self.leases.get(&id).is_none_or(|(who, _)| who != labeller) {
             self.leases.insert(id, (labeller.to_string(), now));
+            self.db
+                .execute(
+                    "INSERT OR REPLACE INTO leases (query, labeller, at_ms) VALUES (?1, ?2, ?3)",
+                    params![id as i64, labeller, now as i64],
+                )
+                .map_err(|e| Refused::Invalid(format!("keeping the lease failed: {e}")))?;
         }
         Ok(Some(Shown {
             query: self.queries[&id].clone(),
@@ -484,7 +509,14 @@ impl Desk {
         let repeat = check.is_some();
         if !repeat {
             if self.answered.contains(&query) {
-                return Err(Refused::Answered(query));
+                let mine = self
+                    .given
+                    .contains_key(&(query, labeller.to_string(), false));
+                return Err(if mine {
+                    Refused::Answered(query)
+                } else {
+                    Refused::AnsweredByOther(query)
+                });
             }
             if !self.queries.contains_key(&query) {
                 return Err(Refused::Unknown(query));
@@ -537,6 +569,8 @@ impl Desk {
                     "DELETE FROM checks WHERE query = ?1 AND labeller = ?2",
                     params![query as i64, labeller],
                 )?;
+            } else {
+                tx.execute("DELETE FROM leases WHERE query = ?1", [query as i64])?;
             }
             tx.commit()?;
             Ok(())
@@ -792,6 +826,10 @@ mod tests {
         assert_eq!(g.answer.shadow, Some(Preference::First));
         assert_eq!(
             d.answer("bob", a.query.id, Choice::Left, 1, [0, 0]),
+            Err(Refused::AnsweredByOther(a.query.id))
+        );
+        assert_eq!(
+            d.answer("ann", a.query.id, Choice::Left, 1, [0, 0]),
             Err(Refused::Answered(a.query.id))
         );
         assert_eq!(
@@ -821,11 +859,16 @@ mod tests {
             let s2 = d.next("ann", None).unwrap().unwrap();
             d.answer("ann", s2.query.id, Choice::Equal, 10, [1, 1])
                 .unwrap();
+            // bob's page shows the last open pair.
+            assert!(d.next("bob", None).unwrap().is_some());
             // NOTE: dropped without sending: a teacher killed before the learner heard.
             (s1.query.id, s2.query.id)
         };
         let mut d = desk(&path, |c| c.undo_s = 0);
         assert_eq!(d.open_queries(), 1);
+        // The pair on bob's page stays his across the restart.
+        assert!(d.next("ann", None).unwrap().is_none());
+        assert!(d.next("bob", None).unwrap().is_some());
         let sent = d.due(60_000).unwrap();
         let mut ids: Vec<u64> = sent.iter().map(|a| a.query).collect();
         ids.sort();

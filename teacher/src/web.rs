@@ -102,10 +102,20 @@ fn error(status: StatusCode, msg: impl Into<String>) -> Response {
 fn refused(r: Refused) -> Response {
     let status = match r {
         Refused::Unknown(_) => StatusCode::NOT_FOUND,
-        Refused::Answered(_) | Refused::NothingToUndo => StatusCode::CONFLICT,
+        Refused::Answered(_) | Refused::AnsweredByOther(_) | Refused::NothingToUndo => {
+            StatusCode::CONFLICT
+        }
         Refused::Invalid(_) => StatusCode::BAD_REQUEST,
     };
-    error(status, r.to_string())
+    // NOTE: a client that sent an answer again (a dropped reply) may take "by_you" as done;
+    // an answer that lost the race to another labeller is not recorded.
+    let by_you = match r {
+        Refused::Answered(_) => Some(true),
+        Refused::AnsweredByOther(_) => Some(false),
+        _ => None,
+    };
+    let body = serde_json::json!({ "error": r.to_string(), "by_you": by_you });
+    (status, Json(body)).into_response()
 }
 
 fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Bad> {
