@@ -420,7 +420,12 @@ impl Desk {
         {
             h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
         }
-        (h >> 29) & 1 == 1
+        // NOTE: FNV alone leaves the high bits nearly unmoved by the last byte (the round):
+        // mixed, a repeat's sides are a fresh draw.
+        h ^= h >> 33;
+        h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);
+        h ^= h >> 33;
+        h & 1 == 1
     }
 
     /// The next pair for `labeller` (none open: `None`), not `exclude`: an undone answer's
@@ -805,6 +810,9 @@ mod tests {
             })
             .collect();
         assert!(shown.iter().any(|s| s.swapped) && shown.iter().any(|s| !s.swapped));
+        // A repeat's sides are drawn afresh: over 40 queries, some differ from the first time.
+        assert!((1..=40).any(|q| d.swapped(q, "ann", false) != d.swapped(q, "ann", true)));
+        assert!((1..=40).any(|q| d.swapped(q, "ann", false) == d.swapped(q, "ann", true)));
         d.answered.clear();
         // Leases: bob is not shown what ann holds.
         let a = d.next("ann", None).unwrap().unwrap();
