@@ -128,7 +128,8 @@ class Client:
             try:
                 return self.call("POST", "/api/v1/answer", body)[1] or {}
             except ApiError as e:
-                if e.status == 409 and tries > 1:
+                # NOTE: not when another labeller answered first ("by_you": false).
+                if e.status == 409 and tries > 1 and "another labeller" not in e.message:
                     return {"ok": True}
                 raise
             except Unreachable as e:
@@ -228,7 +229,7 @@ def wait_for_pair(client: Client, timeout: float, quiet: bool):
         time.sleep(1)
 
 
-def run_auto(client: Client, mode: str, count: int, timeout: float) -> int:
+def run_auto(client: Client, mode: str, count: int, timeout: float, pace: float = 0.0) -> int:
     for i in range(count):
         pair, why = wait_for_pair(client, timeout, quiet=True)
         if pair is None:
@@ -236,8 +237,10 @@ def run_auto(client: Client, mode: str, count: int, timeout: float) -> int:
                   f"{i} of {count} answered", file=sys.stderr)
             return 1
         choice = ALTERNATE[i % len(ALTERNATE)] if mode == "alternate" else mode
+        # A person's pace: look at the pair this long before answering.
+        time.sleep(pace)
         try:
-            client.answer(pair["query"], choice, took_ms=0,
+            client.answer(pair["query"], choice, took_ms=pace * 1000,
                           deadline=time.monotonic() + timeout)
         except ApiError as e:
             print(f"error: the teacher refused the answer to query {pair['query']}: "
@@ -305,6 +308,8 @@ def main(argv=None) -> int:
     ap.add_argument("--answer", choices=CHOICES + ("alternate",), default=None,
                     help="answer automatically (alternate cycles left, right, equal)")
     ap.add_argument("--count", type=int, default=1, help="with --answer: how many pairs to answer")
+    ap.add_argument("--pace", type=float, default=0.0,
+                    help="with --answer: seconds to wait on each pair before answering")
     ap.add_argument("--timeout", type=float, default=120.0,
                     help="with --answer: give up when no pair comes for this many seconds")
     args = ap.parse_args(argv)
@@ -315,7 +320,9 @@ def main(argv=None) -> int:
     client = Client(args.url, args.name, args.token)
     try:
         if args.answer:
-            return run_auto(client, args.answer, args.count, args.timeout)
+            if args.pace < 0:
+                ap.error("--pace must be >= 0")
+            return run_auto(client, args.answer, args.count, args.timeout, args.pace)
         return run_interactive(client)
     except ApiError as e:
         print(f"error: teacher said: {e.message} (HTTP {e.status})", file=sys.stderr)

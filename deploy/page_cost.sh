@@ -2,8 +2,8 @@
 # What the labelling page costs the learner: env steps/s of the same 40k-step Decoupled
 # PEBBLE run (2 actors, seed 1, first session at 2k steps, 100 queries a session every 2k)
 # with (a) the scripted oracle in-process, (b) the human teacher with two terminal clients
-# answering as fast as they can (each pair replayed and drawn by the teacher), (c) the human
-# teacher with nobody labelling. Prints the last curve row's env_steps_per_s.
+# answering (each pair replayed and drawn by the teacher; every PACE seconds, default as
+# fast as they can), (c) the human teacher with nobody labelling. Prints the last curve row's env_steps_per_s.
 set -euo pipefail
 bin=${PBRL_BIN:-target/release/pbrl}
 out=${1:-/tmp/page-cost}
@@ -16,7 +16,7 @@ echo "oracle in-process:        $(rate "$out/oracle")"
 train=$!
 clients=()
 for name in ann bob; do
-  python3 deploy/label.py --url http://127.0.0.1:18181 --name $name --answer alternate --count 100000 --timeout 600 > "$out/$name.log" 2>&1 &
+  python3 deploy/label.py --url http://127.0.0.1:18181 --name $name --answer alternate --count 100000 --timeout 600 --pace "${PACE:-0}" > "$out/$name.log" 2>&1 &
   clients+=($!)
 done
 wait $train || true
