@@ -96,6 +96,10 @@ pub enum Refused {
     NothingToUndo,
     #[error("{0}")]
     Invalid(String),
+    /// The desk's file failed (the answer is not stored, or stored and its repeats not
+    /// planned): the HTTP side's 500.
+    #[error("{0}")]
+    Failed(String),
 }
 
 /// A pair to show: the query and which side goes left.
@@ -487,7 +491,7 @@ impl Desk {
                     "INSERT OR REPLACE INTO leases (query, labeller, at_ms) VALUES (?1, ?2, ?3)",
                     params![id as i64, labeller, now as i64],
                 )
-                .map_err(|e| Refused::Invalid(format!("keeping the lease failed: {e}")))?;
+                .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e}")))?;
         }
         Ok(Some(Shown {
             query: self.queries[&id].clone(),
@@ -583,7 +587,7 @@ impl Desk {
             tx.commit()?;
             Ok(())
         })();
-        stored.map_err(|e| Refused::Invalid(format!("storing the answer failed: {e:#}")))?;
+        stored.map_err(|e| Refused::Failed(format!("storing the answer failed: {e:#}")))?;
         if let Some(k) = check {
             self.checks.remove(k);
         } else {
@@ -605,7 +609,7 @@ impl Desk {
         let answered = person.answered;
         if !repeat && choice != Choice::Skip {
             self.plan_repeats(query, labeller, answered)
-                .map_err(|e| Refused::Invalid(format!("planning a repeat failed: {e:#}")))?;
+                .map_err(|e| Refused::Failed(format!("planning a repeat failed: {e:#}")))?;
         }
         Ok(answered)
     }
@@ -674,7 +678,7 @@ impl Desk {
             tx.commit()?;
             Ok(())
         })();
-        undone.map_err(|e| Refused::Invalid(format!("undoing failed: {e:#}")))?;
+        undone.map_err(|e| Refused::Failed(format!("undoing failed: {e:#}")))?;
         self.given.remove(&k);
         if repeat {
             self.checks.push(Check {

@@ -106,6 +106,7 @@ fn refused(r: Refused) -> Response {
             StatusCode::CONFLICT
         }
         Refused::Invalid(_) => StatusCode::BAD_REQUEST,
+        Refused::Failed(_) => StatusCode::INTERNAL_SERVER_ERROR,
     };
     // NOTE: a client that sent an answer again (a dropped reply) may take "by_you" as done;
     // an answer that lost the race to another labeller is not recorded.
