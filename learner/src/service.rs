@@ -130,13 +130,6 @@ struct Teachers {
     status: MessagePublisher,
 }
 
-impl Teachers {
-    /// Tell teachers (and the people at their pages) where the learner stands.
-    async fn status(&self, s: LearnerStatus) -> Result<()> {
-        self.status.send(&Body::Status(s)).await
-    }
-}
-
 /// Where the learner stands (built before any await: the feedback loop is not `Sync`).
 fn status_of(f: &Feedback, env_steps: u64, labellers: &Labellers) -> Result<LearnerStatus> {
     let c = f.counts()?;
@@ -152,6 +145,11 @@ fn status_of(f: &Feedback, env_steps: u64, labellers: &Labellers) -> Result<Lear
 }
 
 impl Teachers {
+    /// Tell teachers (and the people at their pages) where the learner stands.
+    async fn status(&self, s: LearnerStatus) -> Result<()> {
+        self.status.send(&Body::Status(s)).await
+    }
+
     async fn ask(&self, queries: &[Query]) -> Result<()> {
         for q in queries {
             self.queries.send(&Body::Query(Box::new(q.clone()))).await?;
