@@ -185,6 +185,15 @@ CREATE TABLE IF NOT EXISTS checks (
 );
 ";
 
+/// A labeller's name as the wire checks it, and not blank.
+fn check_name(labeller: &str) -> Result<(), Refused> {
+    check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
+    if labeller.trim().is_empty() {
+        return Err(Refused::Invalid("labeller: a name is needed".into()));
+    }
+    Ok(())
+}
+
 fn code() -> bincode::config::Configuration {
     bincode::config::standard()
 }
@@ -438,10 +447,7 @@ impl Desk {
     /// The next pair for `labeller` (none open: `None`), not `exclude`: an undone answer's
     /// query first, then a repeat that is due, then the oldest open query nobody else holds.
     pub fn next(&mut self, labeller: &str, exclude: Option<u64>) -> Result<Option<Shown>, Refused> {
-        check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
-        if labeller.trim().is_empty() {
-            return Err(Refused::Invalid("labeller: a name is needed".into()));
-        }
+        check_name(labeller)?;
         let now = now_ms();
         let lease_ms = self.cfg.lease_s * 1000;
         let person = self.people.entry(labeller.to_string()).or_default();
@@ -510,10 +516,7 @@ impl Desk {
         took_ms: u64,
         replays: [u32; 2],
     ) -> Result<u64, Refused> {
-        check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
-        if labeller.trim().is_empty() {
-            return Err(Refused::Invalid("labeller: a name is needed".into()));
-        }
+        check_name(labeller)?;
         let check = self
             .checks
             .iter()
@@ -718,12 +721,7 @@ impl Desk {
             .as_ref()
             .filter(|(_, at)| now < at + 5_000)
             .map(|(s, _)| s);
-        let mut people: Vec<&String> = self
-            .people
-            .iter()
-            .filter(|(_, p)| now < p.last_seen_ms + 30_000)
-            .map(|(n, _)| n)
-            .collect();
+        let mut people = self.present();
         people.sort();
         serde_json::json!({
             "protocol": crate::web::PROTOCOL,

@@ -212,7 +212,7 @@ pub async fn run_human(
     let mut status = Inbox::status(&session, &keys).await?;
     let answers =
         MessagePublisher::new(&session, &keys, keys.answer(&cfg.id), Priority::DataHigh).await?;
-    let lock = || desk.lock().unwrap_or_else(|e| e.into_inner());
+    let lock = || crate::web::lock(&desk);
     tracing::info!(run = %cfg.run, id = %cfg.id, "labelling page on http://{addr}/");
     let mut summary = TeacherSummary::default();
     let mut tokens: HashMap<String, zenoh::liveliness::LivelinessToken> = HashMap::new();

@@ -21,8 +21,9 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{bail, Context, Result};
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Query as UrlQuery, State};
+use axum::extract::{DefaultBodyLimit, Query as UrlQuery, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
+use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
@@ -145,20 +146,31 @@ fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Bad> {
     }
 }
 
-fn lock(desk: &Mutex<Desk>) -> std::sync::MutexGuard<'_, Desk> {
+pub(crate) fn lock(desk: &Mutex<Desk>) -> std::sync::MutexGuard<'_, Desk> {
     desk.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// The router of the page and the API.
+/// The router of the page and the API (every API call checked for the token first).
 pub fn router(web: Web) -> Router {
-    Router::new()
-        .route("/", get(page))
+    let api = Router::new()
         .route("/api/v1/status", get(status))
         .route("/api/v1/next", get(next))
         .route("/api/v1/answer", post(answer))
         .route("/api/v1/undo", post(undo))
+        .route_layer(middleware::from_fn_with_state(web.clone(), guard));
+    Router::new()
+        .route("/", get(page))
+        .merge(api)
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(web)
+}
+
+/// Let an API call through only with the token, when there is one.
+async fn guard(State(web): State<Web>, req: Request, next: Next) -> Response {
+    match authorised(&web, req.headers()) {
+        Ok(()) => next.run(req).await,
+        Err(r) => r.into_response(),
+    }
 }
 
 async fn page() -> impl IntoResponse {
@@ -171,14 +183,7 @@ struct Who {
     exclude: Option<u64>,
 }
 
-async fn status(
-    State(web): State<Web>,
-    headers: HeaderMap,
-    UrlQuery(who): UrlQuery<Who>,
-) -> Response {
-    if let Err(r) = authorised(&web, &headers) {
-        return r.into_response();
-    }
+async fn status(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response {
     Json(lock(&web.desk).status(who.labeller.as_deref())).into_response()
 }
 
@@ -200,14 +205,7 @@ fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
     scene(&t, world)
 }
 
-async fn next(
-    State(web): State<Web>,
-    headers: HeaderMap,
-    UrlQuery(who): UrlQuery<Who>,
-) -> Response {
-    if let Err(r) = authorised(&web, &headers) {
-        return r.into_response();
-    }
+async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response {
     let Some(labeller) = who.labeller else {
         return error(StatusCode::BAD_REQUEST, "labeller: a name is needed");
     };
@@ -297,9 +295,6 @@ fn parse<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &Bytes) -> R
 }
 
 async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
-    if let Err(r) = authorised(&web, &headers) {
-        return r.into_response();
-    }
     let a: AnswerBody = match parse(&headers, &body) {
         Ok(a) => a,
         Err(r) => return r.into_response(),
@@ -316,9 +311,6 @@ async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Resp
 }
 
 async fn undo(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Response {
-    if let Err(r) = authorised(&web, &headers) {
-        return r.into_response();
-    }
     let u: UndoBody = match parse(&headers, &body) {
         Ok(u) => u,
         Err(r) => return r.into_response(),
