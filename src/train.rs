@@ -185,7 +185,8 @@ impl LearnArgs {
         let scaled = self.algo == Algo::Sac
             && self.reward == RewardSource::Decoupled
             && self.preset != "paper"
-            && !self.explicit.contains("sac_reward_scale");
+            && !self.explicit.contains("sac_reward_scale")
+            && !cfg.sac.lambda_scale;
         if scaled {
             cfg.sac.reward_scale = 1.0 / cfg.pref.lambda0.max(1.0);
         }

@@ -198,6 +198,15 @@ impl LearnerConfig {
         if !(scale.is_finite() && scale > 0.0) {
             return bad("sac_reward_scale", &scale, "must be a finite number > 0");
         }
+        if self.sac.lambda_scale
+            && !(self.algo == Algo::Sac && self.reward == RewardSource::Decoupled)
+        {
+            return bad(
+                "sac_lambda_scale",
+                &true,
+                "scales only SAC's decoupled reward (--algo sac --reward decoupled)",
+            );
+        }
         if !(p.lambda0.is_finite() && p.lambda0 >= 0.0) {
             return bad("lambda0", &p.lambda0, "must be a finite number >= 0");
         }
@@ -341,7 +350,12 @@ pub fn check_resume(stored: &serde_json::Value, new: &serde_json::Value) -> Resu
             ),
         }
     }
-    walk("", stored, new)
+    // A field added since the run began reads as its serde default: the stored config
+    // goes through the struct before the walk, so only a real change is refused.
+    let upgraded = serde_json::from_value::<LearnerConfig>(stored.clone())
+        .ok()
+        .and_then(|c| serde_json::to_value(c).ok());
+    walk("", upgraded.as_ref().unwrap_or(stored), new)
 }
 
 #[cfg(test)]
@@ -400,6 +414,34 @@ mod tests {
             &serde_json::to_value(&b).unwrap(),
         )
         .unwrap();
+    }
+
+    #[test]
+    fn a_stored_config_read_back_resumes() {
+        // An f32 field such as the world's eat_distance (0.03) is stored as the f64
+        // 0.029999999329447746; serde_json's default float parser read it back one ULP
+        // off, and a resume was refused for a field nobody changed.
+        let mut a = LearnerConfig::new("r", Algo::Sac, RewardSource::Pref, 4, 2);
+        a.world = serde_json::json!({"config": {"eat_distance": 0.03f32, "dt": 0.02f32}});
+        let now = serde_json::to_value(&a).unwrap();
+        let text = serde_json::to_string_pretty(&now).unwrap();
+        let stored: serde_json::Value = serde_json::from_str(&text).unwrap();
+        check_resume(&stored, &now).unwrap();
+    }
+
+    #[test]
+    fn a_field_added_since_the_run_began_reads_as_its_default() {
+        let a = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
+        let now = serde_json::to_value(&a).unwrap();
+        let mut stored = now.clone();
+        let sac = stored["sac"].as_object_mut().unwrap();
+        assert_eq!(sac.remove("lambda_scale"), Some(serde_json::json!(false)));
+        check_resume(&stored, &now).unwrap();
+        // The same field set now, against a run that began without it, is a change.
+        let mut b = a.clone();
+        b.sac.lambda_scale = true;
+        let e = check_resume(&stored, &serde_json::to_value(&b).unwrap()).unwrap_err();
+        assert!(e.to_string().contains("sac.lambda_scale is false"), "{e}");
     }
 
     #[test]

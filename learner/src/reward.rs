@@ -83,6 +83,9 @@ pub struct TrainReward {
     pub model: Option<Arc<RewardModel>>,
     /// The state-entropy bonus of the pretraining (learnt rewards only).
     pub entropy: Option<StateEntropy>,
+    /// Divide a SAC minibatch's decoupled reward by max(1, lambda_t)
+    /// (`--sac-lambda-scale`).
+    pub lambda_scale: bool,
 }
 
 impl TrainReward {
@@ -129,6 +132,8 @@ impl TrainReward {
                 let learnt = self.learnt(&b.obs, &b.act)?;
                 if self.pretraining() {
                     learnt
+                } else if self.lambda_scale && l > 1.0 {
+                    (&b.task + (learnt / l)?)?
                 } else {
                     ((&b.task * l)? + learnt)?
                 }
@@ -197,5 +202,74 @@ mod tests {
         assert!((mid - 0.067_379).abs() < 1e-5, "{mid}");
         let end = lambda(Schedule::Exp, 10.0, 1e-5, t, t);
         assert!((end - 4.5399e-4).abs() < 1e-7, "{end}");
+    }
+
+    #[test]
+    fn the_lambda_scale_keeps_the_task_part_and_shrinks_r_hat() {
+        use crate::reward_model::RewardModelConfig;
+        let model = RewardModel::new(RewardModelConfig::default(), 2, 1).unwrap();
+        let dev = &Device::Cpu;
+        let obs = Tensor::new(&[[0.1f32, -0.2], [0.3, 0.4]], dev).unwrap();
+        let act = Tensor::new(&[[0.5f32], [-0.5]], dev).unwrap();
+        let task = Tensor::new(&[[-0.3f32], [-0.1]], dev).unwrap();
+        let b = Batch {
+            obs: obs.clone(),
+            act: act.clone(),
+            task: task.clone(),
+            truth: task.clone(),
+            next_obs: obs.clone(),
+            done: task.zeros_like().unwrap(),
+        };
+        let r_hat: Vec<f32> = model
+            .predict_tensor(&obs, &act)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let mut reward = TrainReward {
+            source: RewardSource::Decoupled,
+            schedule: Schedule::Linear,
+            lambda0: 10.0,
+            rho: 0.0,
+            total_steps: 100,
+            model: Some(Arc::new(model)),
+            entropy: None,
+            lambda_scale: false,
+        };
+        let rows = |r: &mut TrainReward, t| -> Vec<f32> {
+            r.minibatch(&b, t)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap()
+        };
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+        let task = [-0.3f32, -0.1];
+        // t = 50: lambda 5. Plain: 5 r_task + r_hat; scaled: r_task + r_hat / 5.
+        let plain = rows(&mut reward, 50);
+        assert!(
+            close(
+                &plain,
+                &[5.0 * task[0] + r_hat[0], 5.0 * task[1] + r_hat[1]]
+            ),
+            "{plain:?}"
+        );
+        reward.lambda_scale = true;
+        let scaled = rows(&mut reward, 50);
+        assert!(
+            close(
+                &scaled,
+                &[task[0] + r_hat[0] / 5.0, task[1] + r_hat[1] / 5.0]
+            ),
+            "{scaled:?}"
+        );
+        // t = 95: lambda 0.5 < 1, nothing to divide: 0.5 r_task + r_hat either way.
+        let late = rows(&mut reward, 95);
+        assert!(
+            close(&late, &[0.5 * task[0] + r_hat[0], 0.5 * task[1] + r_hat[1]]),
+            "{late:?}"
+        );
     }
 }

@@ -76,6 +76,13 @@ pub struct SacConfig {
     )]
     #[serde(default = "one")]
     pub reward_scale: f64,
+    /// SAC, decoupled reward: also divide the reward by max(1, lambda_t) at each
+    /// gradient step, so that its task part keeps the task baseline's size while
+    /// lambda_t decays and r_hat's share grows as the schedule says (the fixed
+    /// 1 / lambda_0 scale shrinks the whole reward with lambda_t instead).
+    #[arg(id = "sac_lambda_scale", long = "sac-lambda-scale")]
+    #[serde(default)]
+    pub lambda_scale: bool,
     /// Seed of initialisation, minibatches and sampling noise (the run's `--seed`).
     #[arg(skip)]
     pub seed: u64,
@@ -95,6 +102,7 @@ impl Default for SacConfig {
             lr: 3e-4,
             init_alpha: 0.1,
             reward_scale: 1.0,
+            lambda_scale: false,
             target_entropy: None,
             replay_capacity: 1_000_000,
             random_steps: 600,

@@ -227,6 +227,7 @@ pub async fn run(
             .reward
             .learnt()
             .then(|| StateEntropy::new(cfg.obs_dim, cfg.pref.knn_k, cfg.pref.knn_pool)),
+        lambda_scale: cfg.sac.lambda_scale,
     };
     let mut feedback = if cfg.reward.learnt() {
         let labels = folder
