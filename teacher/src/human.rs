@@ -194,6 +194,16 @@ fn check_name(labeller: &str) -> Result<(), Refused> {
     Ok(())
 }
 
+/// Every row of `sql`, each as a tuple of its columns.
+fn all_rows<T>(db: &Connection, sql: &str) -> rusqlite::Result<Vec<T>>
+where
+    T: for<'a> TryFrom<&'a rusqlite::Row<'a>, Error = rusqlite::Error>,
+{
+    db.prepare(sql)?
+        .query_map([], |r| T::try_from(r))?
+        .collect()
+}
+
 fn code() -> bincode::config::Configuration {
     bincode::config::standard()
 }
@@ -241,21 +251,15 @@ impl Desk {
     }
 
     fn load(&mut self) -> Result<()> {
-        let rows: Vec<(i64, Vec<u8>)> = self
-            .db
-            .prepare("SELECT id, message FROM queries ORDER BY id")?
-            .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
-            .collect::<rusqlite::Result<_>>()?;
+        let rows: Vec<(i64, Vec<u8>)> =
+            all_rows(&self.db, "SELECT id, message FROM queries ORDER BY id")?;
         for (id, bytes) in rows {
             let (q, _): (Query, usize) = bincode::serde::decode_from_slice(&bytes, code())
                 .with_context(|| format!("query {id} does not decode"))?;
             self.queries.insert(q.id, Arc::new(q));
         }
-        let rows: Vec<(Vec<u8>, i64)> = self
-            .db
-            .prepare("SELECT message, given_at_ms FROM answers")?
-            .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
-            .collect::<rusqlite::Result<_>>()?;
+        let rows: Vec<(Vec<u8>, i64)> =
+            all_rows(&self.db, "SELECT message, given_at_ms FROM answers")?;
         for (bytes, at) in rows {
             let (a, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
                 .context("an answer does not decode")?;
@@ -272,21 +276,15 @@ impl Desk {
                 },
             );
         }
-        let rows: Vec<(i64, String, i64)> = self
-            .db
-            .prepare("SELECT query, labeller, at_ms FROM leases")?
-            .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
-            .collect::<rusqlite::Result<_>>()?;
+        let rows: Vec<(i64, String, i64)> =
+            all_rows(&self.db, "SELECT query, labeller, at_ms FROM leases")?;
         // NOTE: a pair on someone's open page stays theirs across a restart.
         self.leases = rows
             .into_iter()
             .map(|(q, who, at)| (q as u64, (who, at as u64)))
             .collect();
-        let rows: Vec<(i64, String, i64)> = self
-            .db
-            .prepare("SELECT query, labeller, due_after FROM checks")?
-            .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?
-            .collect::<rusqlite::Result<_>>()?;
+        let rows: Vec<(i64, String, i64)> =
+            all_rows(&self.db, "SELECT query, labeller, due_after FROM checks")?;
         self.checks = rows
             .into_iter()
             .map(|(query, labeller, due_after)| Check {
