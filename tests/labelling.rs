@@ -1018,6 +1018,8 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     };
     let db = out.join("labels.sqlite");
 
+    // The page's server is up (the browser would meet a refused connection before).
+    api.env_steps(60);
     // A person at the page in a browser: a pair plays, the next one is fetched.
     const PERSON: &str = "Pat P";
     let browser = with_browser.then(|| Browser::open(dir.path()));
