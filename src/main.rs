@@ -105,9 +105,15 @@ fn main() -> Result<()> {
     // terminal; the runner points at the log).
     let mut error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
     // NOTE: by default pbrl's own progress and every crate's warnings; RUST_LOG brings the
-    // rest back (zenoh's INFO lines, the resolved config at debug).
+    // rest back (zenoh's INFO lines, the resolved config at debug). A benchmark prints its
+    // table and warnings only (its runs' progress lines would break the table).
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
-        "warn,pbrl=info,pbrl_common=info,pbrl_actor=info,pbrl_learner=info,pbrl_teacher=info".into()
+        if matches!(command, Command::Bench(_)) {
+            "warn".into()
+        } else {
+            "warn,pbrl=info,pbrl_common=info,pbrl_actor=info,pbrl_learner=info,pbrl_teacher=info"
+                .into()
+        }
     });
     tracing_subscriber::registry()
         .with(filter)

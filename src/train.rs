@@ -707,6 +707,10 @@ pub enum BenchCommand {
         /// Actor counts to time (comma-separated).
         #[arg(long, value_delimiter = ',', default_value = "1,2")]
         actors: Vec<u32>,
+        /// More `pbrl train` flags for every run, after `--` (say, `-- --reward-max-pairs
+        /// 4096`).
+        #[arg(last = true)]
+        train_flags: Vec<String>,
     },
     /// What a checkpoint costs with a full SAC replay buffer (feeding-sized transitions).
     Checkpoint {
@@ -732,6 +736,7 @@ fn bench_train(
     only: Option<String>,
     rewards: &[String],
     actor_counts: &[u32],
+    train_flags: &[String],
 ) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -765,6 +770,7 @@ fn bench_train(
                     format!("--run=bench-{algo}-{reward}-{actors}"),
                     format!("--out={}", out.display()),
                 ];
+                let line = line.into_iter().chain(train_flags.iter().cloned());
                 let matches =
                     <TrainLine as clap::CommandFactory>::command().try_get_matches_from(line)?;
                 let TrainLine { mut args } =
@@ -797,7 +803,17 @@ pub fn bench(cmd: BenchCommand) -> Result<()> {
             algo,
             rewards,
             actors,
-        } => return bench_train(steps, checkpoint_every, algo, &rewards, &actors),
+            train_flags,
+        } => {
+            return bench_train(
+                steps,
+                checkpoint_every,
+                algo,
+                &rewards,
+                &actors,
+                &train_flags,
+            )
+        }
         BenchCommand::Checkpoint {
             transitions,
             increment,

@@ -282,6 +282,9 @@ pub fn ppo_preset() -> Vec<Setting> {
         ),
         ("candidate_factor", "/pref/candidate_factor", json!(10)),
         ("unsup_steps", "/pref/unsup_steps", json!(32_000)),
+        // NOTE: PPO's sessions come about 3 s apart (16,000 env steps at ~5,000 a second);
+        // a 4,096-pair training (about 4 s) would hold every session back.
+        ("reward_max_pairs", "/pref/model/max_pairs", json!(1024)),
     ]
 }
 
@@ -370,6 +373,7 @@ mod tests {
         apply_preset(&mut cfg, &ppo_preset(), &explicit).unwrap();
         assert_eq!(cfg.pref.lambda0, 7.0, "set by the user");
         assert_eq!(cfg.pref.feedback_interval, 16_000, "PrefPPO's default");
+        assert_eq!(cfg.pref.model.max_pairs, 1024, "PrefPPO's default");
         assert_eq!(
             cfg.pref.lambda_schedule,
             Schedule::Linear,
@@ -377,6 +381,7 @@ mod tests {
         );
         let mut sac = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
         assert_eq!(sac.pref.lambda_schedule, Schedule::Exp, "PEBBLE's default");
+        assert_eq!(sac.pref.model.max_pairs, 4096, "PEBBLE's default");
         let explicit: BTreeSet<String> = ["sac_batch".to_string()].into();
         sac.sac.batch = 64;
         apply_preset(&mut sac, &paper_preset(), &explicit).unwrap();

@@ -642,21 +642,25 @@ impl Feedback {
     }
 }
 
-/// Lower the calling thread's scheduling priority to nice 10 (Linux; elsewhere nothing):
-/// the feedback jobs (choosing queries, training the ensemble) then run on the CPU that the
-/// learner's updates and the actors leave, instead of taking it from them. A session whose
-/// job waits for CPU comes later; the env steps do not slow down.
+/// Lower the calling thread's scheduling priority by 10 nice levels (at most to 19; Linux,
+/// elsewhere nothing): the feedback jobs (choosing queries, training the ensemble) then run
+/// on the CPU that the learner's updates and the actors leave, instead of taking it from
+/// them. A session whose job waits for CPU comes later; the env steps do not slow down.
 fn lower_priority() {
     #[cfg(target_os = "linux")]
     {
-        // SAFETY: gettid and setpriority only read and set this thread's scheduling
-        // priority; no memory is shared with them.
-        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 10) };
-        if rc != 0 {
-            tracing::debug!(
-                error = %std::io::Error::last_os_error(),
-                "could not lower the feedback job's priority"
-            );
+        // NOTE: relative, not nice 10: under `nice -n 19 pbrl exp run` an absolute 10 would
+        // raise the job above the learner (root may lower a nice value). On Linux the nice
+        // value belongs to the thread, so this leaves the learner's threads as they are.
+        // SAFETY: errno and nice only read and set this thread's errno and priority; no
+        // memory is shared with them.
+        let rc = unsafe {
+            *libc::__errno_location() = 0;
+            libc::nice(10)
+        };
+        let err = std::io::Error::last_os_error();
+        if rc == -1 && err.raw_os_error() != Some(0) {
+            tracing::debug!(error = %err, "could not lower the feedback job's priority");
         }
     }
 }
@@ -708,6 +712,40 @@ mod tests {
     use super::*;
     use pbrl_common::{StepRewards, Trajectory};
     use std::path::Path;
+
+    /// This thread's nice value.
+    #[cfg(target_os = "linux")]
+    fn thread_nice() -> i32 {
+        // SAFETY: getpriority only reads this thread's priority.
+        unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) }
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn the_feedback_job_runs_ten_nice_levels_below_its_caller_and_never_above_it() {
+        std::thread::spawn(|| {
+            let before = thread_nice();
+            lower_priority();
+            assert_eq!(thread_nice(), (before + 10).min(19));
+        })
+        .join()
+        .unwrap();
+        // A learner run under `nice -n 15` (as `pbrl exp` grids often are): the job must
+        // not come out at nice 10, above the learner.
+        std::thread::spawn(|| {
+            // SAFETY: setpriority only sets this thread's priority (raising a nice value
+            // needs no privilege).
+            let niced = thread_nice().max(15);
+            assert_eq!(
+                unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, niced) },
+                0
+            );
+            lower_priority();
+            assert_eq!(thread_nice(), 19);
+        })
+        .join()
+        .unwrap();
+    }
 
     fn msg(seq: u64) -> TrajectoryMsg {
         let steps = 3;
