@@ -131,10 +131,14 @@ struct Check {
     due_after: u64,
 }
 
-/// What a person did at this desk since it started.
+/// What a person did at this desk.
 #[derive(Clone, Debug, Default)]
 struct Person {
+    /// Answers since the desk started (the page's count for this sitting).
     answered: u64,
+    /// Answers ever given here, kept on disk: repeats are due after a count of these, so
+    /// a restart neither brings them forward nor puts them off.
+    total: u64,
     last_seen_ms: u64,
     /// The query of an undone answer, given back first.
     undone: Option<(u64, bool)>,
@@ -183,6 +187,7 @@ CREATE TABLE IF NOT EXISTS checks (
     due_after INTEGER NOT NULL,
     PRIMARY KEY (query, labeller)
 );
+CREATE TABLE IF NOT EXISTS labellers (name TEXT PRIMARY KEY, answered INTEGER NOT NULL);
 ";
 
 /// A labeller's name as the wire checks it, and not blank.
@@ -296,6 +301,10 @@ impl Desk {
         // NOTE: a repeat is planned only on a query's answer (and withdrawn with it), so a
         // query with repeats to ask is answered, even once that answer has left the disk.
         self.answered.extend(self.checks.iter().map(|c| c.query));
+        let rows: Vec<(String, i64)> = all_rows(&self.db, "SELECT name, answered FROM labellers")?;
+        for (name, total) in rows {
+            self.people.entry(name).or_default().total = total as u64;
+        }
         if !self.queries.is_empty() || !self.given.is_empty() {
             tracing::info!(
                 open = self.open_queries(),
@@ -450,7 +459,7 @@ impl Desk {
         let lease_ms = self.cfg.lease_s * 1000;
         let person = self.people.entry(labeller.to_string()).or_default();
         person.last_seen_ms = now;
-        let answered_by_them = person.answered;
+        let answered_by_them = person.total;
         let undone = person.undone;
         let pick = |id: u64, repeat: bool| Some((id, repeat));
         let mut chosen = None;
@@ -585,6 +594,11 @@ impl Desk {
             } else {
                 tx.execute("DELETE FROM leases WHERE query = ?1", [query as i64])?;
             }
+            tx.execute(
+                "INSERT INTO labellers (name, answered) VALUES (?1, 1)
+                 ON CONFLICT (name) DO UPDATE SET answered = answered + 1",
+                [labeller],
+            )?;
             tx.commit()?;
             Ok(())
         })();
@@ -606,8 +620,9 @@ impl Desk {
         );
         let person = self.people.entry(labeller.to_string()).or_default();
         person.answered += 1;
+        person.total += 1;
         person.undone = None;
-        let answered = person.answered;
+        let answered = person.total;
         if !repeat && choice != Choice::Skip {
             self.plan_repeats(query, labeller, answered)
                 .map_err(|e| Refused::Failed(format!("planning a repeat failed: {e:#}")))?;
@@ -629,7 +644,7 @@ impl Desk {
             .filter(|(name, p)| name.as_str() != labeller && now < p.last_seen_ms + 60_000)
             .min_by_key(|(name, _)| name.as_str())
         {
-            plan.push((other.clone(), p.answered));
+            plan.push((other.clone(), p.total));
         }
         for (who, due_after) in plan {
             self.db.execute(
@@ -676,6 +691,10 @@ impl Desk {
                 // NOTE: repeats planned on the withdrawn answer go with it.
                 tx.execute("DELETE FROM checks WHERE query = ?1", [query as i64])?;
             }
+            tx.execute(
+                "UPDATE labellers SET answered = max(answered - 1, 0) WHERE name = ?1",
+                [labeller],
+            )?;
             tx.commit()?;
             Ok(())
         })();
@@ -694,6 +713,7 @@ impl Desk {
         }
         let person = self.people.entry(labeller.to_string()).or_default();
         person.answered = person.answered.saturating_sub(1);
+        person.total = person.total.saturating_sub(1);
         person.undone = Some((query, repeat));
         Ok(query)
     }
@@ -937,7 +957,6 @@ mod tests {
             c.repeat_share = 1.0;
             c.undo_s = 0;
         });
-        d.people.entry("ann".into()).or_default().answered = 4;
         assert!(d.answered.contains(&first));
         let r = d.next("ann", None).unwrap().unwrap();
         assert!(r.repeat && r.query.id == first);
