@@ -733,9 +733,9 @@ mod tests {
         // A learner run under `nice -n 15` (as `pbrl exp` grids often are): the job must
         // not come out at nice 10, above the learner.
         std::thread::spawn(|| {
+            let niced = thread_nice().max(15);
             // SAFETY: setpriority only sets this thread's priority (raising a nice value
             // needs no privilege).
-            let niced = thread_nice().max(15);
             assert_eq!(
                 unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, niced) },
                 0
