@@ -109,17 +109,15 @@ pub struct RewardModelConfig {
 
 impl Default for RewardModelConfig {
     fn default() -> Self {
-        Self {
-            members: 3,
-            hidden: vec![64, 64, 64],
-            lr: 3e-4,
-            batch: 256,
-            max_epochs: 50,
-            stop_accuracy: 0.97,
-            max_pairs: 4096,
-            resample: Resample::Bootstrap,
-            seed: 0,
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Defaults {
+            #[command(flatten)]
+            model: RewardModelConfig,
         }
+        // NOTE: the defaults are clap's, so the two cannot drift apart (as `PrefConfig`'s);
+        // parsing no arguments cannot fail.
+        Defaults::parse_from(["pbrl"]).model
     }
 }
 
