@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use pbrl_learner::run_folder::RunFolder;
+use pbrl_learner::run::run_folder::RunFolder;
 use serde::Deserialize;
 
 #[derive(Subcommand, Debug)]

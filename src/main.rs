@@ -2,6 +2,7 @@
 
 mod exp;
 mod plot;
+mod bench;
 mod train;
 
 use anyhow::Result;
@@ -40,7 +41,7 @@ enum Command {
     Labels(LabelsCommand),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
-    Bench(train::BenchCommand),
+    Bench(bench::BenchCommand),
 }
 
 #[derive(Subcommand, Debug)]
@@ -57,15 +58,15 @@ fn labels(cmd: LabelsCommand) -> Result<()> {
     match cmd {
         LabelsCommand::Stats { run } => {
             let path = if run.is_dir() {
-                pbrl_learner::run_folder::RunFolder::new(&run).labels()
+                pbrl_learner::run::run_folder::RunFolder::new(&run).labels()
             } else {
                 run
             };
             if !path.exists() {
                 anyhow::bail!("no label store at {}", path.display());
             }
-            let s = pbrl_learner::label_stats::stats(&path)?;
-            print!("{}", pbrl_learner::label_stats::report(&s));
+            let s = pbrl_learner::pref::label_stats::stats(&path)?;
+            print!("{}", pbrl_learner::pref::label_stats::report(&s));
             Ok(())
         }
     }
@@ -90,7 +91,7 @@ fn main() -> Result<()> {
         Command::Train(a) | Command::Learner(a) => {
             let dir = a.learn.out_dir();
             std::fs::create_dir_all(&dir)?;
-            let path = pbrl_learner::run_folder::RunFolder::new(dir).log();
+            let path = pbrl_learner::run::run_folder::RunFolder::new(dir).log();
             Some(
                 std::fs::OpenOptions::new()
                     .create(true)
@@ -117,7 +118,12 @@ fn main() -> Result<()> {
     });
     tracing_subscriber::registry()
         .with(filter)
-        .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr))
+        // NOTE: colour escapes only on a terminal; a pipe or a file gets plain text.
+        .with(
+            tracing_subscriber::fmt::layer()
+                .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+                .with_writer(std::io::stderr),
+        )
         .with(log_file.map(|f| {
             tracing_subscriber::fmt::layer()
                 .with_ansi(false)
@@ -140,7 +146,7 @@ fn main() -> Result<()> {
     }
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
-        Command::Bench(cmd) => return train::bench(cmd),
+        Command::Bench(cmd) => return bench::run(cmd),
         Command::Labels(cmd) => return labels(cmd),
         Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
         Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),

@@ -8,31 +8,21 @@ use clap::Args;
 use pbrl_actor::cli::WorldArgs;
 use pbrl_actor::runner::{self, ActorConfig, Task, POINT_HORIZON};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
-use pbrl_learner::config::{self, PrefConfig, Setting};
-use pbrl_learner::ppo::PpoConfig;
-use pbrl_learner::run_folder::RunFolder;
-use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_learner::run::config;
+use pbrl_learner::run::run_folder::RunFolder;
+use pbrl_learner::run::service::{self, Algo, LearnerConfig, RewardSource};
 use pbrl_teacher::human::HumanConfig;
 use pbrl_teacher::scripted::{ScriptedConfig, TeacherKind};
 use pbrl_teacher::service::{self as teaching, default_id, TeacherConfig, TeacherSummary};
 use pbrl_teacher::web::HttpConfig;
 
-/// What to learn and how long: shared by `train` and `learner`. The backbones' and
-/// preference learning's settings are flags from their own config structs (flattened).
+/// What to learn and how long: shared by `train` and `learner`. The learner's settings
+/// (backbones, preference learning, the run's curve and checkpoints) are its config's own
+/// flags (flattened); these are the ones that choose among them.
 #[derive(Args, Clone, Debug)]
 pub struct LearnArgs {
-    /// RL backbone: SAC (PEBBLE) or PPO (PrefPPO).
-    #[arg(long, value_enum, default_value = "sac")]
-    pub algo: Algo,
-    /// Reward to train on: learnt from preferences and decoupled from the task reward
-    /// (the paper's method), learnt alone (PEBBLE, PrefPPO), or the baselines' ground
-    /// truth and task reward.
-    #[arg(long, value_enum, default_value = "decoupled")]
-    pub reward: RewardSource,
-    /// Env steps of the run.
-    #[arg(long, default_value_t = 1_000_000)]
-    pub steps: u64,
+    #[command(flatten)]
+    pub learner: LearnerConfig,
     /// Seed of the run.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -44,32 +34,6 @@ pub struct LearnArgs {
     /// reward 3x256). Flags given explicitly win over a preset.
     #[arg(long, default_value = "default", value_parser = ["default", "paper"])]
     pub preset: String,
-    /// Env steps between rows of the learning curve.
-    #[arg(long, default_value_t = 10_000)]
-    pub log_every: u64,
-    /// Evaluation episodes at each row of the learning curve: the policy's mean action on
-    /// fixed seeds (30 give a success rate to about +-0.17 at 95%); 0 turns evaluation off.
-    #[arg(long, default_value_t = 30)]
-    pub eval_episodes: u32,
-    /// Evaluate with the mean action only (by default the same seeds are also run with
-    /// sampled actions: the policy as it trains, as the paper's figures show it).
-    #[arg(long)]
-    pub eval_mean_only: bool,
-    /// Env steps between checkpoints (each at the next weights publication after the mark;
-    /// 0: only at the end or on a stop).
-    #[arg(long, default_value_t = 50_000)]
-    pub checkpoint_every: u64,
-    /// Also checkpoint when this many seconds have passed since the last one (0: off).
-    #[arg(long, default_value_t = 600)]
-    pub checkpoint_secs: u64,
-    /// Checkpoints kept (the newest).
-    #[arg(long, default_value_t = 3)]
-    pub keep_checkpoints: usize,
-    /// Deterministic mode (use with one actor): each weights version runs exactly its
-    /// share of episodes and the next waits for them, and each feedback session waits for
-    /// its answers, so a run is a function of its seed.
-    #[arg(long)]
-    pub sync: bool,
     /// Start over even if the run folder holds a run (default: resume it; the label store
     /// is kept aside, never deleted).
     #[arg(long)]
@@ -80,15 +44,6 @@ pub struct LearnArgs {
     /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
     #[arg(long)]
     pub run: Option<String>,
-    /// Run folder (config.json, curve.csv, labels.sqlite); default `runs/<run>`.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    #[command(flatten)]
-    pub sac: SacConfig,
-    #[command(flatten)]
-    pub ppo: PpoConfig,
-    #[command(flatten)]
-    pub pref: PrefConfig,
     /// The clap ids of the flags given on the command line (presets leave them alone).
     #[arg(skip)]
     pub explicit: BTreeSet<String>,
@@ -102,39 +57,11 @@ pub fn explicit_flags(m: &clap::ArgMatches) -> BTreeSet<String> {
         .collect()
 }
 
-/// The point task learns in seconds with small networks and short sessions.
-fn point_preset() -> Vec<Setting> {
-    use serde_json::json;
-    let rollout = 32 * POINT_HORIZON;
-    vec![
-        ("sac_hidden", "/sac/hidden", json!([64, 64])),
-        ("sac_batch", "/sac/batch", json!(64)),
-        ("ppo_hidden", "/ppo/hidden", json!([64, 64])),
-        ("ppo_rollout_steps", "/ppo/rollout_steps", json!(rollout)),
-        ("reward_hidden", "/pref/model/hidden", json!([64, 64])),
-        ("unsup_steps", "/pref/unsup_steps", json!(1_200)),
-        ("feedback_interval", "/pref/feedback_interval", json!(1_500)),
-        (
-            "queries_per_session",
-            "/pref/queries_per_session",
-            json!(40),
-        ),
-        ("max_feedback", "/pref/max_feedback", json!(400)),
-        ("candidate_factor", "/pref/candidate_factor", json!(10)),
-        ("lambda0", "/pref/lambda0", json!(1.0)),
-        ("knn_pool", "/pref/knn_pool", json!(2_000)),
-        (
-            "annotation_capacity",
-            "/pref/annotation_capacity",
-            json!(1_000),
-        ),
-    ]
-}
-
 impl LearnArgs {
     pub fn run_id(&self) -> String {
+        let l = &self.learner;
         self.run.clone().unwrap_or_else(|| {
-            format!("{:?}-{}-s{}", self.algo, self.reward.name(), self.seed).to_lowercase()
+            format!("{:?}-{}-s{}", l.algo, l.reward.name(), self.seed).to_lowercase()
         })
     }
 
@@ -146,44 +73,31 @@ impl LearnArgs {
         world: serde_json::Value,
     ) -> Result<LearnerConfig> {
         let (obs_dim, act_dim) = self.task.dims();
-        let mut cfg = LearnerConfig::new(&self.run_id(), self.algo, self.reward, obs_dim, act_dim);
-        cfg.total_steps = self.steps;
-        cfg.sac = SacConfig {
-            seed: self.seed,
-            ..self.sac.clone()
-        };
-        cfg.ppo = PpoConfig {
-            seed: self.seed,
-            ..self.ppo.clone()
-        };
-        cfg.pref = self.pref.clone();
+        let mut cfg = self.learner.clone();
+        cfg.run = self.run_id();
+        (cfg.obs_dim, cfg.act_dim) = (obs_dim, act_dim);
+        (cfg.sac.seed, cfg.ppo.seed) = (self.seed, self.seed);
         cfg.world = world;
-        cfg.log_every = self.log_every;
         cfg.actors = actors;
         cfg.episode_steps = episode_steps;
-        cfg.eval_episodes = self.eval_episodes;
-        cfg.eval_sampled = !self.eval_mean_only;
-        cfg.checkpoint_every = self.checkpoint_every;
-        cfg.checkpoint_secs = self.checkpoint_secs;
-        cfg.keep_checkpoints = self.keep_checkpoints;
-        cfg.sync = self.sync;
         cfg.progress = !self.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
         cfg.out = Some(self.out_dir());
-        if self.algo == Algo::Ppo {
+        if cfg.algo == Algo::Ppo {
             config::apply_preset(&mut cfg, &config::ppo_preset(), &self.explicit)?;
         }
         if self.preset == "paper" {
             config::apply_preset(&mut cfg, &config::paper_preset(), &self.explicit)?;
         }
         if self.task == Task::Point {
-            config::apply_preset(&mut cfg, &point_preset(), &self.explicit)?;
+            let preset = config::point_preset(POINT_HORIZON as u32);
+            config::apply_preset(&mut cfg, &preset, &self.explicit)?;
         }
         // NOTE: Decoupled PEBBLE trains on lambda_t r_task + r_hat with lambda_0 15: SAC's
         // critics then chase targets 15 times the task baseline's, and learn them slower
         // at the same learning rate. Scaled by 1 / lambda_0 they keep the baseline's size
         // (measured on feeding, 3 seeds at 1M env steps: success 0.60 against 0.46).
-        let scaled = self.algo == Algo::Sac
-            && self.reward == RewardSource::Decoupled
+        let scaled = cfg.algo == Algo::Sac
+            && cfg.reward == RewardSource::Decoupled
             && self.preset != "paper"
             && !self.explicit.contains("sac_reward_scale")
             && !cfg.sac.lambda_scale;
@@ -196,7 +110,8 @@ impl LearnArgs {
 
     /// The run folder.
     pub fn out_dir(&self) -> PathBuf {
-        self.out
+        self.learner
+            .out
             .clone()
             .unwrap_or_else(|| PathBuf::from("runs").join(self.run_id()))
     }
@@ -209,12 +124,12 @@ impl LearnArgs {
             folder.clear_fresh()?;
             return Ok(true);
         }
+        let total = self.learner.total_steps;
         if let Some(steps) = folder.finished_steps()? {
-            if steps >= self.steps {
+            if steps >= total {
                 println!(
-                    "{}: finished at {steps} env steps (asked for {}); nothing to do (--fresh starts over)",
+                    "{}: finished at {steps} env steps (asked for {total}); nothing to do (--fresh starts over)",
                     folder.root.display(),
-                    self.steps
                 );
                 return Ok(false);
             }
@@ -557,7 +472,7 @@ pub async fn train(args: TrainArgs) -> Result<()> {
 /// stall or close. Each session that talks over a transport runs its reads on zenoh's two
 /// receive threads, shared by every session of a process, so a router and client sessions
 /// in one process can block one another (`common::bus` tells how).
-async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<PathBuf>)> {
+pub(crate) async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<PathBuf>)> {
     let world = args.world.config()?;
     let cfg = args.learn.learner_config(
         args.actors,
@@ -677,206 +592,4 @@ pub async fn actor(args: ActorArgs) -> Result<()> {
     };
     let session = args.connect.open().await?;
     runner::run(cfg, session, stop_signal()).await
-}
-
-#[derive(clap::Subcommand, Debug)]
-pub enum BenchCommand {
-    /// SAC gradient steps and PPO minibatch updates per second (obs 25, action 7), at
-    /// 256x256 / batch 256 and 512x512 / batch 512, on 1 and 2 threads.
-    Learner {
-        /// Gradient steps per timing.
-        #[arg(long, default_value_t = 30)]
-        steps: usize,
-    },
-    /// End-to-end env steps per second of `pbrl train` (feeding, in-process router, no
-    /// evaluation) with 1 and 2 actors, for SAC and PPO.
-    Train {
-        /// Env steps per run (SAC's first 600 are random actions without updates).
-        #[arg(long, default_value_t = 20_000)]
-        steps: u64,
-        /// Env steps between checkpoints (0: only the final one).
-        #[arg(long, default_value_t = 0)]
-        checkpoint_every: u64,
-        /// Only this algorithm.
-        #[arg(long)]
-        algo: Option<String>,
-        /// Rewards to time, each a run (the learnt ones with the in-process oracle;
-        /// comma-separated).
-        #[arg(long, value_delimiter = ',', default_value = "truth,decoupled")]
-        rewards: Vec<String>,
-        /// Actor counts to time (comma-separated).
-        #[arg(long, value_delimiter = ',', default_value = "1,2")]
-        actors: Vec<u32>,
-        /// More `pbrl train` flags for every run, after `--` (say, `-- --reward-max-pairs
-        /// 4096`).
-        #[arg(last = true)]
-        train_flags: Vec<String>,
-    },
-    /// What a checkpoint costs with a full SAC replay buffer (feeding-sized transitions).
-    Checkpoint {
-        /// Transitions in the buffer.
-        #[arg(long, default_value_t = 1_000_000)]
-        transitions: u64,
-        /// Transitions added before the second (incremental) checkpoint.
-        #[arg(long, default_value_t = 50_000)]
-        increment: u64,
-    },
-}
-
-/// `pbrl train`'s arguments, parsed from a command line (for the benchmark).
-#[derive(clap::Parser, Debug)]
-struct TrainLine {
-    #[command(flatten)]
-    args: TrainArgs,
-}
-
-fn bench_train(
-    steps: u64,
-    checkpoint_every: u64,
-    only: Option<String>,
-    rewards: &[String],
-    actor_counts: &[u32],
-    train_flags: &[String],
-) -> Result<()> {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()?;
-    println!(
-        "{:<5} {:<10} {:>6} {:>10} {:>12} {:>10} {:>8} {:>7}",
-        "algo", "reward", "actors", "env steps", "env steps/s", "updates/s", "wall s", "labels"
-    );
-    for algo in ["sac", "ppo"] {
-        if only.as_deref().is_some_and(|a| a != algo) {
-            continue;
-        }
-        for &actors in actor_counts {
-            // NOTE: the rewards of one algorithm and actor count run one after the other,
-            // so their ratio is measured under the same conditions.
-            for reward in rewards {
-                let out = std::env::temp_dir().join(format!(
-                    "pbrl-bench-train-{}-{algo}-{reward}-{actors}",
-                    std::process::id()
-                ));
-                let line = [
-                    "train".to_string(),
-                    format!("--algo={algo}"),
-                    format!("--reward={reward}"),
-                    format!("--actors={actors}"),
-                    format!("--steps={steps}"),
-                    format!("--log-every={steps}"),
-                    "--eval-episodes=0".into(),
-                    format!("--checkpoint-every={checkpoint_every}"),
-                    format!("--run=bench-{algo}-{reward}-{actors}"),
-                    format!("--out={}", out.display()),
-                ];
-                let line = line.into_iter().chain(train_flags.iter().cloned());
-                let matches =
-                    <TrainLine as clap::CommandFactory>::command().try_get_matches_from(line)?;
-                let TrainLine { mut args } =
-                    <TrainLine as clap::FromArgMatches>::from_arg_matches(&matches)?;
-                args.learn.explicit = explicit_flags(&matches);
-                args.learn.quiet = true;
-                let start = std::time::Instant::now();
-                let (summary, _) = runtime.block_on(train_in_process(args))?;
-                let wall = start.elapsed().as_secs_f64();
-                let _ = std::fs::remove_dir_all(&out);
-                println!(
-                    "{algo:<5} {reward:<10} {actors:>6} {:>10} {:>12.0} {:>10.1} {wall:>8.1} {:>7}",
-                    summary.env_steps,
-                    summary.env_steps as f64 / wall,
-                    summary.updates as f64 / wall,
-                    summary.labels.map_or(0, |c| c.answered),
-                );
-            }
-        }
-    }
-    Ok(())
-}
-
-pub fn bench(cmd: BenchCommand) -> Result<()> {
-    let steps = match cmd {
-        BenchCommand::Learner { steps } => steps,
-        BenchCommand::Train {
-            steps,
-            checkpoint_every,
-            algo,
-            rewards,
-            actors,
-            train_flags,
-        } => {
-            return bench_train(
-                steps,
-                checkpoint_every,
-                algo,
-                &rewards,
-                &actors,
-                &train_flags,
-            )
-        }
-        BenchCommand::Checkpoint {
-            transitions,
-            increment,
-        } => {
-            let dir =
-                std::env::temp_dir().join(format!("pbrl-bench-checkpoint-{}", std::process::id()));
-            let c = pbrl_learner::checkpoint::bench(&dir, transitions, increment);
-            let _ = std::fs::remove_dir_all(&dir);
-            let c = c?;
-            let mb = |b: u64| b as f64 / 1e6;
-            println!(
-                "replay buffer of {} transitions (obs 25, action 7), SAC 256x256:",
-                c.transitions
-            );
-            println!(
-                "  first checkpoint (whole buffer): {:.0} ms, {:.1} MB",
-                c.full_ms,
-                mb(c.full_bytes)
-            );
-            println!(
-                "  next checkpoint (+{} transitions): {:.0} ms, {:.1} MB",
-                c.increment,
-                c.increment_ms,
-                mb(c.increment_bytes)
-            );
-            println!(
-                "  restore (checks, networks, buffer): {:.0} ms",
-                c.restore_ms
-            );
-            return Ok(());
-        }
-    };
-    println!(
-        "{:<8} {:>10} {:>8} {:>12} {:>12}",
-        "threads", "hidden", "batch", "SAC ms/step", "PPO ms/mb"
-    );
-    for threads in [1, 2] {
-        // NOTE: candle reads RAYON_NUM_THREADS at every matmul.
-        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
-        for (hidden, batch) in [(256, 256), (512, 512)] {
-            let sac = pbrl_learner::bench::sac_step_ms(hidden, batch, steps, 3)?;
-            let ppo = pbrl_learner::bench::ppo_update_ms(hidden, batch, 4000)?;
-            println!(
-                "{threads:<8} {:>10} {batch:>8} {sac:>12.2} {ppo:>12.2}   ({:.0} SAC steps/s, {:.0} PPO updates/s)",
-                format!("{hidden}x{hidden}"),
-                1e3 / sac,
-                1e3 / ppo
-            );
-        }
-    }
-    // What preference learning adds, on one thread (as a service runs).
-    std::env::set_var("RAYON_NUM_THREADS", "1");
-    println!();
-    println!("preference learning (1 thread):");
-    for (reward_hidden, name) in [(vec![64, 64, 64], "3x64"), (vec![256, 256, 256], "3x256")] {
-        let plain = pbrl_learner::bench::sac_step_ms(256, 256, steps, 3)?;
-        let relabelled =
-            pbrl_learner::bench::sac_step_relabelled_ms(256, 256, steps, 3, &reward_hidden)?;
-        let epoch = pbrl_learner::reward_model::bench_epoch(1000, 200, &reward_hidden)?;
-        println!(
-            "  ensemble 3 x {name}: SAC step (256x256, B=256) {plain:.2} ms, relabelled {relabelled:.2} ms (+{:.0}%); one training epoch over 1,000 labels of 200-step pairs {epoch:.2} s",
-            100.0 * (relabelled / plain - 1.0)
-        );
-    }
-    Ok(())
 }

@@ -156,3 +156,27 @@ fn bad_input_is_refused_without_a_panic() {
         "{stderr}"
     );
 }
+
+#[test]
+fn logs_to_a_pipe_carry_no_colour_escapes() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("run");
+    let out = pbrl(&[
+        "train",
+        "--task=point",
+        "--reward=truth",
+        "--steps=600",
+        "--log-every=300",
+        "--eval-episodes=0",
+        "--actors=1",
+        "--run=colours",
+        &format!("--out={}", out_dir.display()),
+    ]);
+    let (_, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("learner starts"), "{stderr}");
+    assert!(
+        !stderr.contains('\u{1b}'),
+        "an escape in a piped log: {stderr:?}"
+    );
+}

@@ -4,7 +4,7 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use pbrl_learner::run_folder::RunFolder;
+use pbrl_learner::run::run_folder::RunFolder;
 
 const GRID: &str = r#"
 name = "tiny"

@@ -13,9 +13,9 @@ use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{Body, EvalRequest, EvalResult, Stop, Tensor, TrajectoryMsg, Weights};
 use pbrl_common::{Keys, Outcome, StepRewards, Trajectory};
-use pbrl_learner::ppo::PpoConfig;
-use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig};
+use pbrl_learner::rl::ppo::PpoConfig;
+use pbrl_learner::rl::sac::SacConfig;
+use pbrl_learner::run::service::{self, Algo, LearnerConfig};
 use support::{bad_payloads, put_all};
 
 fn trajectory(nan: bool, short: bool) -> Body {

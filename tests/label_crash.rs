@@ -11,7 +11,7 @@ use pbrl_common::bus::{Inbox, MessagePublisher};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::wire::{Answer, Body, Query};
 use pbrl_common::Keys;
-use pbrl_learner::labels::LabelStore;
+use pbrl_learner::pref::labels::LabelStore;
 use pbrl_teacher::scripted::{Scripted, ScriptedConfig, TeacherKind};
 use pbrl_teacher::service::Teacher;
 

@@ -1,8 +1,8 @@
 //! The RL backbones learn a task made for tests (a point reaching a goal) within seconds.
 
 use pbrl_actor::point::{point_episode, POINT_ACT, POINT_OBS};
-use pbrl_learner::ppo::{Ppo, PpoConfig};
-use pbrl_learner::sac::{Sac, SacConfig};
+use pbrl_learner::rl::ppo::{Ppo, PpoConfig};
+use pbrl_learner::rl::sac::{Sac, SacConfig};
 use rand::{Rng, SeedableRng};
 
 const HORIZON: u32 = 30;

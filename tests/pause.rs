@@ -20,9 +20,9 @@ use pbrl_actor::WorldConfig;
 use pbrl_common::bus::{wait_until, WeightsClient};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::Keys;
-use pbrl_learner::ppo::PpoConfig;
-use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{self, Algo, LearnerConfig};
+use pbrl_learner::rl::ppo::PpoConfig;
+use pbrl_learner::rl::sac::SacConfig;
+use pbrl_learner::run::service::{self, Algo, LearnerConfig};
 
 /// Run `fut`, not polling it while `paused` holds true.
 async fn pausable<F: std::future::Future>(

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use pbrl_learner::run_folder::RunFolder;
+use pbrl_learner::run::run_folder::RunFolder;
 
 fn pbrl(args: &[String]) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_pbrl"));
@@ -183,7 +183,7 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
         if reward == "pref" {
             let labels = |d: &Path| {
                 let store =
-                    pbrl_learner::labels::LabelStore::open(&d.join("labels.sqlite"), "sac-pref-s5")
+                    pbrl_learner::pref::labels::LabelStore::open(&d.join("labels.sqlite"), "sac-pref-s5")
                         .unwrap();
                 let rows = store.labels_since(0).unwrap();
                 (store.counts().unwrap(), rows.len())

@@ -10,7 +10,7 @@ use pbrl_actor::WorldConfig;
 use pbrl_common::bus::WeightsClient;
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::Keys;
-use pbrl_learner::service::{self, Algo, LearnerConfig};
+use pbrl_learner::run::service::{self, Algo, LearnerConfig};
 use tokio::sync::oneshot;
 
 fn actor(
@@ -140,7 +140,7 @@ async fn ppo_trains_only_on_the_current_version() {
     let curve = std::fs::read_to_string(dir.path().join("curve.csv")).unwrap();
     assert_eq!(curve.lines().count(), 1 + summary.rows.len());
     assert!(curve.starts_with("env_steps,wall_s,eval_episodes,eval_return_truth,eval_success_rate"));
-    let folder = pbrl_learner::run_folder::RunFolder::new(dir.path());
+    let folder = pbrl_learner::run::run_folder::RunFolder::new(dir.path());
     let last = folder
         .latest_checkpoint()
         .unwrap()

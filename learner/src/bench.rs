@@ -1,6 +1,7 @@
 //! Timing of the learner's unit of work: a SAC gradient step, a PPO minibatch update, and
 //! what preference learning adds (the ensemble relabelling each SAC minibatch, an epoch of
-//! ensemble training) on feeding-sized inputs (observation 25, action 7), synthetic data.
+//! ensemble training) on feeding-sized inputs (observation 25, action 7), synthetic data;
+//! and what a checkpoint costs with a full replay buffer.
 
 use std::time::Instant;
 
@@ -10,8 +11,15 @@ use pbrl_common::{StepRewards, Trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::ppo::{Ppo, PpoConfig};
-use crate::sac::{Sac, SacConfig};
+use crate::pref::reward::{Pool, RewardSource, TrainReward};
+use crate::pref::reward_model::{Labelled, RewardModel, RewardModelConfig, Segment};
+use crate::rl::ppo::{Ppo, PpoConfig};
+use crate::rl::sac::{Sac, SacConfig};
+use crate::run::backbone::Backbone;
+use crate::run::checkpoint::{open_folder, Checkpoints, Of, Progress};
+use crate::run::config::{Algo, LearnerConfig};
+use crate::run::curve::Curve;
+use crate::run::run_folder::RunFolder;
 
 const OBS: usize = 25;
 const ACT: usize = 7;
@@ -57,11 +65,11 @@ pub fn sac_step_relabelled_ms(
     reps: usize,
     reward_hidden: &[usize],
 ) -> Result<f64> {
-    let cfg = crate::reward_model::RewardModelConfig {
+    let cfg = RewardModelConfig {
         hidden: reward_hidden.to_vec(),
         ..Default::default()
     };
-    let model = crate::reward_model::RewardModel::new(cfg, OBS, ACT)?;
+    let model = RewardModel::new(cfg, OBS, ACT)?;
     sac_step_with(hidden, batch, steps, reps, Some(&model))
 }
 
@@ -70,9 +78,9 @@ fn sac_step_with(
     batch: usize,
     steps: usize,
     reps: usize,
-    model: Option<&crate::reward_model::RewardModel>,
+    model: Option<&RewardModel>,
 ) -> Result<f64> {
-    let reward = |b: &crate::sac::Batch| match model {
+    let reward = |b: &crate::rl::replay::Batch| match model {
         Some(m) => m.predict_tensor(&b.obs, &b.act),
         None => Ok(b.truth.clone()),
     };
@@ -126,4 +134,127 @@ pub fn ppo_update_ms(hidden: usize, minibatch: usize, rollout: usize) -> Result<
     let t = Instant::now();
     let stats = ppo.train(&data, &rewards, u64::MAX)?;
     Ok(t.elapsed().as_secs_f64() * 1e3 / stats.minibatch_updates.max(1) as f64)
+}
+
+/// Seconds for one training epoch (all members) over `labels` random pairs of `steps`-step
+/// feeding-sized segments (observation 25, action 7), with hidden layers `hidden` and the
+/// other settings at their defaults.
+pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64> {
+    let cfg = RewardModelConfig {
+        hidden: hidden.to_vec(),
+        max_epochs: 1,
+        stop_accuracy: f64::INFINITY,
+        max_pairs: 0,
+        ..RewardModelConfig::default()
+    };
+    let mut model = RewardModel::new(cfg, OBS, ACT)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut segment = || {
+        std::sync::Arc::new(Segment {
+            obs: (0..steps * OBS)
+                .map(|_| rng.random_range(-2.0..2.0))
+                .collect(),
+            actions: (0..steps * ACT)
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect(),
+        })
+    };
+    let data: Vec<Labelled> = (0..labels)
+        .map(|i| Labelled {
+            first: segment(),
+            second: segment(),
+            target: (i % 2) as f32,
+        })
+        .collect();
+    let t = std::time::Instant::now();
+    model.train(&data)?;
+    Ok(t.elapsed().as_secs_f64())
+}
+
+/// What checkpoints cost with a full replay buffer (`pbrl bench checkpoint`).
+#[derive(Clone, Debug)]
+pub struct CheckpointCost {
+    pub transitions: u64,
+    /// The first checkpoint: the whole buffer as one segment.
+    pub full_ms: f64,
+    pub full_bytes: u64,
+    /// A checkpoint after `increment` more transitions: only they are written.
+    pub increment: u64,
+    pub increment_ms: f64,
+    pub increment_bytes: u64,
+    /// Reading the newest checkpoint back (checks, networks, replay buffer).
+    pub restore_ms: f64,
+}
+
+/// Fill a feeding-sized SAC (obs 25, action 7, 256x256) replay buffer with `transitions`
+/// random transitions (whole 200-step episodes), checkpoint it into `dir`, add
+/// `increment`, checkpoint again, and restore.
+pub fn checkpoint(
+    dir: &std::path::Path,
+    transitions: u64,
+    increment: u64,
+) -> anyhow::Result<CheckpointCost> {
+    const EPISODE: u64 = 200;
+    let mut cfg = LearnerConfig::new("bench", Algo::Sac, RewardSource::Truth, OBS, ACT);
+    cfg.total_steps = transitions + increment;
+    cfg.sac.replay_capacity = transitions as usize;
+    cfg.out = Some(dir.to_path_buf());
+    let folder = RunFolder::new(dir);
+    let mut backbone = Backbone::new(&cfg)?;
+    let (file, _, segments) = open_folder(&folder, &cfg, &mut backbone)?;
+    let mut checkpoints = Checkpoints::new(&cfg, Some(RunFolder::new(dir)), segments);
+    let reward = TrainReward::new(
+        RewardSource::Truth,
+        &cfg.pref,
+        cfg.total_steps,
+        OBS,
+        Pool::AtOnce,
+    );
+    let curve = Curve::new(Some(file), 0, None);
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut fill = |backbone: &mut Backbone, n: u64| {
+        if let Backbone::Sac(sac) = backbone {
+            for seed in 0..n.div_ceil(EPISODE) {
+                sac.observe(&synthetic(&mut rng, seed, EPISODE as usize));
+            }
+        }
+    };
+    let mut timed = |backbone: &Backbone, env_steps: u64| -> anyhow::Result<(f64, u64)> {
+        let before: u64 = checkpoints.segments().iter().map(|s| s.bytes).sum();
+        let start = Instant::now();
+        let p = Progress {
+            version: 1,
+            env_steps,
+            ..Progress::default()
+        };
+        let of = Of {
+            backbone,
+            feedback: None,
+            reward: &reward,
+            curve: &curve,
+        };
+        checkpoints.write(&cfg, of, &p)?;
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let after: u64 = checkpoints.segments().iter().map(|s| s.bytes).sum();
+        let nets: u64 = folder
+            .latest_checkpoint()?
+            .map_or(0, |c| c.manifest.files.iter().map(|f| f.bytes).sum());
+        Ok((ms, after.saturating_sub(before) + nets))
+    };
+    fill(&mut backbone, transitions);
+    let (full_ms, full_bytes) = timed(&backbone, transitions)?;
+    fill(&mut backbone, increment);
+    let (increment_ms, increment_bytes) = timed(&backbone, transitions + increment)?;
+    let start = Instant::now();
+    let mut fresh = Backbone::new(&cfg)?;
+    open_folder(&folder, &cfg, &mut fresh)?;
+    Ok(CheckpointCost {
+        transitions,
+        full_ms,
+        full_bytes,
+        increment,
+        increment_ms,
+        increment_bytes,
+        restore_ms: start.elapsed().as_secs_f64() * 1e3,
+    })
 }

@@ -7,9 +7,9 @@ use pbrl_common::bus::wait_until;
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{self, Body};
 use pbrl_common::{StepRewards, Trajectory};
-use pbrl_learner::ppo::PpoConfig;
-use pbrl_learner::sac::SacConfig;
-use pbrl_learner::service::{Algo, LearnerConfig, RewardSource};
+use pbrl_learner::rl::ppo::PpoConfig;
+use pbrl_learner::rl::sac::SacConfig;
+use pbrl_learner::run::service::{Algo, LearnerConfig, RewardSource};
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Once;
@@ -132,6 +132,12 @@ pub fn point_learner(run: &str, algo: Algo, total: u64) -> LearnerConfig {
     };
     cfg.publish_every = 20;
     cfg.log_every = 1000;
+    // NOTE: the tests' runs evaluate and checkpoint only where they say so.
+    cfg.eval_episodes = 0;
+    cfg.eval_sampled = false;
+    cfg.checkpoint_every = 0;
+    cfg.checkpoint_secs = 0;
+    cfg.keep_checkpoints = 2;
     cfg.actors = 2;
     cfg.episode_steps = pbrl_actor::runner::POINT_HORIZON;
     cfg

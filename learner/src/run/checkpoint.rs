@@ -1,9 +1,10 @@
 //! Checkpoints and resume: what the loop counts ([`Progress`]), what a checkpoint's
-//! `state.bin` holds ([`Saved`]), writing one ([`write`]) and opening a run folder, new or
-//! to resume ([`open_folder`]). The run folder's layout is `run_folder`'s.
+//! `state.bin` holds ([`Saved`]), when one is due and writing it ([`Checkpoints`]), and
+//! opening a run folder, new or to resume ([`open_folder`]). The run folder's layout is
+//! `run_folder`'s.
 
 use std::io::Write;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use pbrl_common::bus::Receipts;
@@ -11,12 +12,12 @@ use pbrl_common::nets::import;
 use pbrl_common::wire::{self, EvalRequest};
 use serde::{Deserialize, Serialize};
 
-use crate::backbone::{Backbone, BackboneState, Publication};
-use crate::config::{check_resume, LearnerConfig};
-use crate::curve::{Curve, CurveRow, Window};
-use crate::entropy::StateEntropy;
-use crate::feedback::{Feedback, FeedbackState};
-use crate::run_folder::{FileSum, RunFolder};
+use crate::pref::feedback::{Feedback, FeedbackState};
+use crate::pref::reward::TrainReward;
+use crate::run::backbone::{Backbone, BackboneState, LastLosses, Publication};
+use crate::run::config::{check_resume, LearnerConfig};
+use crate::run::curve::{Curve, CurveRow, Window};
+use crate::run::run_folder::{FileSum, RunFolder};
 
 /// The learner loop's counters and bookkeeping: with the networks, optimisers, generators,
 /// replay buffer and preference learning's state, everything a resumed run needs.
@@ -33,8 +34,8 @@ pub struct Progress {
     pub receipts: Receipts,
     /// Evaluations asked again.
     pub eval_retries: u64,
-    /// The newest losses: SAC critic, actor, alpha; PPO value, policy, approx KL.
-    pub losses: [f64; 6],
+    /// The newest losses.
+    pub losses: LastLosses,
     /// Wall time of the run in earlier processes.
     pub wall_s: f64,
     pub rows_written: u64,
@@ -61,89 +62,171 @@ fn segment_range(s: &FileSum) -> Option<(u64, u64)> {
     Some((a.parse().ok()?, b.parse().ok()?))
 }
 
-/// Write a checkpoint: the SAC transitions since the last one as a new replay segment,
-/// then networks, state and manifest.
-#[allow(clippy::too_many_arguments)]
-pub fn write(
-    folder: &RunFolder,
-    cfg: &LearnerConfig,
-    backbone: &Backbone,
-    feedback: Option<&Feedback>,
-    entropy: Option<&StateEntropy>,
-    progress: &Progress,
-    curve: &Curve,
-    segments: &mut Vec<FileSum>,
-) -> Result<()> {
-    let start = Instant::now();
-    if let Backbone::Sac(sac) = backbone {
-        let total = sac.replay.total;
-        let held_from = total - sac.replay.len() as u64;
-        let from = segments
-            .last()
-            .and_then(segment_range)
-            .map_or(0, |(_, end)| end)
-            .max(held_from);
-        if total > from {
-            let rows = sac.replay.rows(from, total);
-            segments.push(folder.write_replay_segment(from, total, &rows)?);
+/// When checkpoints are due and writing them: each at a weights publication (PPO: no
+/// rollout half-collected; the deterministic mode: the point a resumed run starts from),
+/// once `checkpoint_every` env steps have passed since the last mark or `checkpoint_secs`
+/// seconds since the last checkpoint. Without a run folder, nothing is written.
+pub struct Checkpoints {
+    folder: Option<RunFolder>,
+    /// The replay segments the newest checkpoint lists (SAC).
+    segments: Vec<FileSum>,
+    every: u64,
+    secs: u64,
+    keep: usize,
+    last: Instant,
+}
+
+impl Checkpoints {
+    pub fn new(cfg: &LearnerConfig, folder: Option<RunFolder>, segments: Vec<FileSum>) -> Self {
+        Self {
+            folder,
+            segments,
+            every: every(cfg.checkpoint_every),
+            secs: cfg.checkpoint_secs,
+            keep: cfg.keep_checkpoints,
+            last: Instant::now(),
         }
-        // Segments wholly out of the buffer are no longer needed.
-        segments.retain(|s| segment_range(s).is_some_and(|(_, end)| end > held_from));
     }
+
+    pub fn folder(&self) -> Option<&RunFolder> {
+        self.folder.as_ref()
+    }
+
+    /// Whether a checkpoint is due now, `published` telling whether weights were just
+    /// published; when it is, the next mark moves past `p.env_steps`.
+    pub fn due(&mut self, p: &mut Progress, published: bool) -> bool {
+        let late = self.secs > 0 && self.last.elapsed() >= Duration::from_secs(self.secs);
+        if !(published && (p.env_steps >= p.next_checkpoint || late)) {
+            return false;
+        }
+        self.last = Instant::now();
+        while p.next_checkpoint <= p.env_steps {
+            p.next_checkpoint = p.next_checkpoint.saturating_add(self.every);
+        }
+        true
+    }
+
+    /// Write a checkpoint: the SAC transitions since the last one as a new replay segment,
+    /// then networks, state and manifest.
+    pub fn write(&mut self, cfg: &LearnerConfig, of: Of<'_>, progress: &Progress) -> Result<()> {
+        let Some(folder) = &self.folder else {
+            return Ok(());
+        };
+        let start = Instant::now();
+        if let Some((held_from, total)) = of.backbone.replay_span() {
+            let from = self
+                .segments
+                .last()
+                .and_then(segment_range)
+                .map_or(0, |(_, end)| end)
+                .max(held_from);
+            if total > from {
+                let rows = of.backbone.replay_rows(from, total);
+                self.segments
+                    .push(folder.write_replay_segment(from, total, &rows)?);
+            }
+            // Segments wholly out of the buffer are no longer needed.
+            self.segments
+                .retain(|s| segment_range(s).is_some_and(|(_, end)| end > held_from));
+        }
+        let bytes = saved(cfg, &of, progress)?;
+        // The checkpoint counts the curve's rows: they must be on disk before it is.
+        if let Some(f) = &of.curve.file {
+            f.sync_data().context("syncing the curve")?;
+        }
+        let mut networks: Vec<(String, &candle_nn::VarMap)> = of
+            .backbone
+            .networks()
+            .into_iter()
+            .map(|(n, v)| (n.to_string(), v))
+            .collect();
+        if let Some(f) = of.feedback {
+            networks.extend(f.networks());
+        }
+        let networks: Vec<(&str, &candle_nn::VarMap)> =
+            networks.iter().map(|(n, v)| (n.as_str(), *v)).collect();
+        folder.write_checkpoint(
+            progress.env_steps,
+            progress.version,
+            &networks,
+            &bytes,
+            self.segments.clone(),
+            self.keep,
+        )?;
+        let replay_bytes: u64 = self.segments.iter().map(|s| s.bytes).sum();
+        tracing::info!(
+            env_steps = progress.env_steps,
+            version = progress.version,
+            ms = start.elapsed().as_millis() as u64,
+            state_bytes = bytes.len(),
+            replay_bytes,
+            "checkpoint written"
+        );
+        Ok(())
+    }
+
+    /// The replay segments the newest checkpoint lists, with their sizes.
+    pub fn segments(&self) -> &[FileSum] {
+        &self.segments
+    }
+}
+
+/// What a checkpoint is of, beside the loop's [`Progress`].
+pub struct Of<'a> {
+    pub backbone: &'a Backbone,
+    pub feedback: Option<&'a Feedback>,
+    pub reward: &'a TrainReward,
+    pub curve: &'a Curve,
+}
+
+/// `n`, or never for 0.
+fn every(n: u64) -> u64 {
+    if n == 0 {
+        u64::MAX
+    } else {
+        n
+    }
+}
+
+/// A fresh run's progress: version 1, the first row and checkpoint marks ahead.
+pub fn fresh_progress(cfg: &LearnerConfig) -> Progress {
+    Progress {
+        version: 1,
+        next_row: cfg.log_every,
+        next_checkpoint: every(cfg.checkpoint_every),
+        ..Progress::default()
+    }
+}
+
+/// A checkpoint's `state.bin`, encoded.
+fn saved(cfg: &LearnerConfig, of: &Of<'_>, progress: &Progress) -> Result<Vec<u8>> {
     let saved = Saved {
         config: serde_json::to_string(cfg)?,
         progress: Progress {
-            rows_written: curve.written,
+            rows_written: of.curve.written,
             ..progress.clone()
         },
-        pending: curve
+        pending: of
+            .curve
             .pending
             .iter()
             .map(|p| (p.row.clone(), p.request.clone()))
             .collect(),
-        backbone: backbone.state()?,
-        feedback: feedback
+        backbone: of.backbone.state()?,
+        feedback: of
+            .feedback
             .map(|f| {
                 f.state().map(|mut s| {
-                    s.entropy = entropy.cloned();
+                    s.entropy = of.reward.entropy.clone();
                     s
                 })
             })
             .transpose()?,
     };
-    let bytes = bincode::serde::encode_to_vec(&saved, bincode::config::standard())?;
-    // The checkpoint counts the curve's rows: they must be on disk before it is.
-    if let Some(f) = &curve.file {
-        f.sync_data().context("syncing the curve")?;
-    }
-    let mut networks: Vec<(String, &candle_nn::VarMap)> = backbone
-        .networks()
-        .into_iter()
-        .map(|(n, v)| (n.to_string(), v))
-        .collect();
-    if let Some(f) = feedback {
-        networks.extend(f.networks());
-    }
-    let networks: Vec<(&str, &candle_nn::VarMap)> =
-        networks.iter().map(|(n, v)| (n.as_str(), *v)).collect();
-    folder.write_checkpoint(
-        progress.env_steps,
-        progress.version,
-        &networks,
-        &bytes,
-        segments.clone(),
-        cfg.keep_checkpoints,
-    )?;
-    let replay_bytes: u64 = segments.iter().map(|s| s.bytes).sum();
-    tracing::info!(
-        env_steps = progress.env_steps,
-        version = progress.version,
-        ms = start.elapsed().as_millis() as u64,
-        state_bytes = bytes.len(),
-        replay_bytes,
-        "checkpoint written"
-    );
-    Ok(())
+    Ok(bincode::serde::encode_to_vec(
+        &saved,
+        bincode::config::standard(),
+    )?)
 }
 
 /// Load the named networks of the checkpoint in `dir` into `varmap`s.
@@ -199,9 +282,8 @@ pub fn open_folder(
                         .into_iter()
                         .map(|(n, v)| (n.to_string(), v)),
                 )?;
-                match (&mut *backbone, &saved.backbone) {
-                    (Backbone::Sac(sac), BackboneState::Sac(s)) => {
-                        sac.restore(s)?;
+                backbone
+                    .restore(&saved.backbone, || {
                         let rows = folder.read_replay(&c.manifest.replay)?;
                         let from = c
                             .manifest
@@ -209,11 +291,9 @@ pub fn open_folder(
                             .first()
                             .and_then(segment_range)
                             .map_or(0, |r| r.0);
-                        sac.replay.restore(from, &rows)?;
-                    }
-                    (Backbone::Ppo(ppo, _), BackboneState::Ppo(s)) => ppo.restore(s)?,
-                    _ => anyhow::bail!("checkpoint {} is of another algorithm", c.dir.display()),
-                }
+                        Ok((from, rows))
+                    })
+                    .with_context(|| format!("restoring {}", c.dir.display()))?;
                 // The curve keeps the rows written before the checkpoint; later ones are
                 // made again.
                 let curve = std::fs::read_to_string(folder.curve())
@@ -274,85 +354,4 @@ pub fn open_folder(
         std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
     writeln!(f, "{}", CurveRow::header())?;
     Ok((f, None, Vec::new()))
-}
-
-/// What checkpoints cost with a full replay buffer (`pbrl bench checkpoint`).
-#[derive(Clone, Debug)]
-pub struct CheckpointCost {
-    pub transitions: u64,
-    /// The first checkpoint: the whole buffer as one segment.
-    pub full_ms: f64,
-    pub full_bytes: u64,
-    /// A checkpoint after `increment` more transitions: only they are written.
-    pub increment: u64,
-    pub increment_ms: f64,
-    pub increment_bytes: u64,
-    /// Reading the newest checkpoint back (checks, networks, replay buffer).
-    pub restore_ms: f64,
-}
-
-/// Fill a feeding-sized SAC (obs 25, action 7, 256x256) replay buffer with `transitions`
-/// random transitions, checkpoint it into `dir`, add `increment`, checkpoint again, and
-/// restore.
-pub fn bench(dir: &std::path::Path, transitions: u64, increment: u64) -> Result<CheckpointCost> {
-    use rand::{Rng, SeedableRng};
-    let mut cfg = LearnerConfig::new(
-        "bench",
-        crate::config::Algo::Sac,
-        crate::reward::RewardSource::Truth,
-        25,
-        7,
-    );
-    cfg.total_steps = transitions + increment;
-    cfg.sac.replay_capacity = transitions as usize;
-    cfg.out = Some(dir.to_path_buf());
-    let folder = RunFolder::new(dir);
-    let mut backbone = Backbone::new(&cfg)?;
-    let (file, _, mut segments) = open_folder(&folder, &cfg, &mut backbone)?;
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    let mut fill = |backbone: &mut Backbone, n: u64| {
-        if let Backbone::Sac(sac) = backbone {
-            for _ in 0..n {
-                let obs: Vec<f32> = (0..25).map(|_| rng.random()).collect();
-                let act: Vec<f32> = (0..7).map(|_| rng.random()).collect();
-                sac.replay
-                    .push(&obs, &act, [rng.random(), rng.random()], &obs, false);
-            }
-        }
-    };
-    let curve = Curve::new(Some(file), 0, None);
-    let mut p = Progress {
-        version: 1,
-        ..Progress::default()
-    };
-    let timed =
-        |backbone: &Backbone, p: &Progress, segments: &mut Vec<FileSum>| -> Result<(f64, u64)> {
-            let before: u64 = segments.iter().map(|s| s.bytes).sum();
-            let start = Instant::now();
-            write(&folder, &cfg, backbone, None, None, p, &curve, segments)?;
-            let ms = start.elapsed().as_secs_f64() * 1e3;
-            let after: u64 = segments.iter().map(|s| s.bytes).sum();
-            let nets: u64 = folder
-                .latest_checkpoint()?
-                .map_or(0, |c| c.manifest.files.iter().map(|f| f.bytes).sum());
-            Ok((ms, after.saturating_sub(before) + nets))
-        };
-    fill(&mut backbone, transitions);
-    p.env_steps = transitions;
-    let (full_ms, full_bytes) = timed(&backbone, &p, &mut segments)?;
-    fill(&mut backbone, increment);
-    p.env_steps += increment;
-    let (increment_ms, increment_bytes) = timed(&backbone, &p, &mut segments)?;
-    let start = Instant::now();
-    let mut fresh = Backbone::new(&cfg)?;
-    open_folder(&folder, &cfg, &mut fresh)?;
-    Ok(CheckpointCost {
-        transitions,
-        full_ms,
-        full_bytes,
-        increment,
-        increment_ms,
-        increment_bytes,
-        restore_ms: start.elapsed().as_secs_f64() * 1e3,
-    })
 }

@@ -1,6 +1,7 @@
-//! The RL backbone behind one enum: SAC (PEBBLE's) or PPO (PrefPPO's). The service hands
+//! The RL backbone behind one enum: SAC (PEBBLE's) or PPO (PrefPPO's). The learner hands
 //! it each trajectory ([`Backbone::observe`]); the backbone decides what to train, when
-//! to publish, what the actors' normaliser is and how much each actor may run ahead.
+//! to publish, what the actors' normaliser is and how much each actor may run ahead. It
+//! owns its replay buffer: a checkpoint reads it through [`Backbone::replay_rows`].
 
 use anyhow::Result;
 use pbrl_common::nets::export;
@@ -8,10 +9,11 @@ use pbrl_common::wire::Weights;
 use pbrl_common::{RunningNorm, Trajectory};
 use serde::{Deserialize, Serialize};
 
-use crate::config::{Algo, LearnerConfig};
-use crate::ppo::{Ppo, PpoState, PpoStats};
-use crate::reward::TrainReward;
-use crate::sac::{Sac, SacLosses, SacState};
+use crate::run::config::{Algo, LearnerConfig};
+use crate::rl::ppo::{Ppo, PpoState, PpoStats};
+use crate::pref::reward::TrainReward;
+use crate::rl::sac::{Sac, SacLosses, SacState};
+
 
 pub enum Backbone {
     Sac(Box<Sac>),
@@ -35,6 +37,52 @@ pub struct Publication {
 pub enum Losses {
     Sac(SacLosses),
     Ppo(PpoStats),
+}
+
+/// The newest losses of each backbone, for the curve (NaN until its first update, and
+/// always for the other backbone's).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LastLosses {
+    /// SAC.
+    pub critic: f64,
+    pub actor: f64,
+    pub alpha: f64,
+    /// PPO.
+    pub value: f64,
+    pub policy: f64,
+    pub approx_kl: f64,
+}
+
+impl Default for LastLosses {
+    fn default() -> Self {
+        let nan = f64::NAN;
+        Self {
+            critic: nan,
+            actor: nan,
+            alpha: nan,
+            value: nan,
+            policy: nan,
+            approx_kl: nan,
+        }
+    }
+}
+
+impl LastLosses {
+    pub fn record(&mut self, losses: Losses) {
+        match losses {
+            Losses::Sac(l) => {
+                (self.critic, self.actor, self.alpha) =
+                    (l.critic as f64, l.actor as f64, l.alpha as f64)
+            }
+            Losses::Ppo(s) => {
+                (self.value, self.policy, self.approx_kl) = (
+                    s.value_loss as f64,
+                    s.policy_loss as f64,
+                    s.approx_kl as f64,
+                )
+            }
+        }
+    }
 }
 
 /// What observing one trajectory did.
@@ -93,9 +141,6 @@ impl Backbone {
                 let was_random = sac.env_steps < sac.cfg.random_steps;
                 sac.observe(&t);
                 let random_ended = was_random && sac.env_steps >= sac.cfg.random_steps;
-                if let Some(e) = reward.entropy.as_mut().filter(|_| reward.model.is_none()) {
-                    e.add(&t.obs[..t.steps() * t.obs_dim as usize]);
-                }
                 let due = sac.updates_due();
                 if due > 0 {
                     let now = env_steps + t.steps() as u64;
@@ -131,11 +176,6 @@ impl Backbone {
                         let rewards = reward.per_step(rollout, now)?;
                         Ok(ppo.train(rollout, &rewards, total)?)
                     })?;
-                    if let Some(e) = reward.entropy.as_mut().filter(|_| reward.model.is_none()) {
-                        for t in rollout.iter() {
-                            e.add(&t.obs[..t.steps() * t.obs_dim as usize]);
-                        }
-                    }
                     out.losses = Some(Losses::Ppo(stats));
                     out.updates = stats.minibatch_updates;
                     rollout.clear();
@@ -220,5 +260,42 @@ impl Backbone {
             Backbone::Sac(s) => BackboneState::Sac(s.state()?),
             Backbone::Ppo(p, _) => BackboneState::Ppo(p.state()?),
         })
+    }
+
+    /// Continue from a checkpoint's state (the networks are loaded apart, into
+    /// [`Backbone::networks`]); SAC's replay buffer is refilled from `replay`, the rows
+    /// of its transitions from the first one saved on.
+    pub fn restore(
+        &mut self,
+        s: &BackboneState,
+        replay: impl FnOnce() -> Result<(u64, Vec<f32>)>,
+    ) -> Result<()> {
+        match (self, s) {
+            (Backbone::Sac(sac), BackboneState::Sac(s)) => {
+                sac.restore(s)?;
+                let (from, rows) = replay()?;
+                sac.restore_replay(from, &rows)?;
+            }
+            (Backbone::Ppo(ppo, _), BackboneState::Ppo(s)) => ppo.restore(s)?,
+            _ => anyhow::bail!("the checkpoint is of another algorithm"),
+        }
+        Ok(())
+    }
+
+    /// The replay buffer's transitions (SAC): the first one it still holds and the number
+    /// pushed so far. None for PPO, which keeps no replay.
+    pub fn replay_span(&self) -> Option<(u64, u64)> {
+        match self {
+            Backbone::Sac(s) => Some(s.replay_span()),
+            Backbone::Ppo(..) => None,
+        }
+    }
+
+    /// Rows of the replay's transitions `from..to` (all still held), for a checkpoint.
+    pub fn replay_rows(&self, from: u64, to: u64) -> Vec<f32> {
+        match self {
+            Backbone::Sac(s) => s.replay_rows(from, to),
+            Backbone::Ppo(..) => Vec::new(),
+        }
     }
 }

@@ -26,10 +26,10 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::config::PrefConfig;
-use crate::labels::{LabelStore, Stored, StoredTrajectory};
-use crate::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler};
-use crate::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
+use crate::pref::config::PrefConfig;
+use crate::pref::labels::{LabelStore, Stored, StoredTrajectory};
+use crate::pref::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler};
+use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
 use crate::state::RngState;
 
 /// Unix time in milliseconds.
@@ -70,7 +70,7 @@ pub struct FeedbackState {
     pub buffer: AnnotationBuffer,
     pub model: RewardModelState,
     /// The state-entropy bonus (while pretraining).
-    pub entropy: Option<crate::entropy::StateEntropy>,
+    pub entropy: Option<crate::pref::entropy::StateEntropy>,
 }
 
 /// A query asked and not answered yet.
@@ -78,6 +78,9 @@ struct InFlight {
     query: Box<Query>,
     sent: Instant,
 }
+
+/// A background job: choosing queries or training the ensemble.
+type Job = Box<dyn FnOnce() -> Result<JobDone> + Send>;
 
 /// What a background job hands back.
 pub enum JobDone {
@@ -251,7 +254,7 @@ impl Feedback {
     }
 
     /// The label store's counts.
-    pub fn counts(&self) -> Result<crate::labels::Counts> {
+    pub fn counts(&self) -> Result<crate::pref::labels::Counts> {
         self.store.counts()
     }
 
@@ -296,76 +299,10 @@ impl Feedback {
         if self.job.is_some() {
             return Ok(None);
         }
-        let work: Box<dyn FnOnce() -> Result<JobDone> + Send> = if self.training_due(env_steps) {
-            let mut model = self.model.snapshot()?;
-            let data = self.data.clone();
-            let new = data[self.counters.trained_labels..].to_vec();
-            let trained_before = model.trained();
-            Box::new(move || {
-                let accuracy_new = if trained_before {
-                    model.accuracy(&new)?
-                } else {
-                    f64::NAN
-                };
-                let stats = model.train(&data)?;
-                Ok(JobDone::Trained {
-                    model: Box::new(model),
-                    stats,
-                    labels: data.len(),
-                    accuracy_new,
-                })
-            })
+        let work = if self.training_due(env_steps) {
+            self.training()?
         } else if self.session_due(env_steps)? {
-            let session = self.counters.sessions + 1;
-            let left = self.cfg.max_feedback - self.store.counts()?.asked;
-            let k = self.cfg.queries_per_session.min(left).min(self.room()) as usize;
-            // NOTE: the first session is uniform: an untrained ensemble's disagreement
-            // means nothing.
-            let sampler = if session == 1 || !self.model.trained() {
-                Sampler::Uniform
-            } else {
-                self.cfg.sampler
-            };
-            let n = if sampler == Sampler::Uniform {
-                k
-            } else {
-                k * self.cfg.candidate_factor as usize
-            };
-            let idx = candidate_pairs(&mut self.rng, self.buffer.len(), n)?;
-            let candidates: Vec<(Arc<Candidate>, Arc<Candidate>)> = idx
-                .iter()
-                .map(|&(i, j)| (self.buffer.get(i).clone(), self.buffer.get(j).clone()))
-                .collect();
-            let model = self.model.clone();
-            Box::new(move || {
-                let chosen = if sampler == Sampler::Uniform {
-                    (0..k.min(candidates.len())).collect()
-                } else {
-                    // One segment per distinct trajectory: the ensemble judges each once.
-                    let mut index: HashMap<*const Candidate, usize> = HashMap::new();
-                    let mut segs: Vec<Segment> = Vec::new();
-                    let mut sides = Vec::with_capacity(candidates.len());
-                    for (a, b) in &candidates {
-                        let mut at = |c: &Arc<Candidate>| {
-                            *index.entry(Arc::as_ptr(c)).or_insert_with(|| {
-                                segs.push(seg_of(c));
-                                segs.len() - 1
-                            })
-                        };
-                        sides.push((at(a), at(b)));
-                    }
-                    let pairs: Vec<(&Segment, &Segment)> =
-                        sides.iter().map(|&(a, b)| (&segs[a], &segs[b])).collect();
-                    let probs = model.preference_probs(&pairs)?;
-                    select(sampler, &probs, candidates.len(), k)
-                };
-                Ok(JobDone::Chosen {
-                    session,
-                    env_steps,
-                    sampler,
-                    pairs: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
-                })
-            })
+            self.choosing(env_steps)?
         } else {
             return Ok(None);
         };
@@ -383,6 +320,69 @@ impl Feedback {
             .context("starting the feedback job's thread")?;
         self.job = Some(rx);
         Ok(None)
+    }
+
+    /// The job of training a copy of the ensemble on all of D (and measuring it first on
+    /// the labels new since the last training).
+    fn training(&self) -> Result<Job> {
+        let mut model = self.model.snapshot()?;
+        let data = self.data.clone();
+        let new = data[self.counters.trained_labels..].to_vec();
+        let trained_before = model.trained();
+        Ok(Box::new(move || {
+            let accuracy_new = if trained_before {
+                model.accuracy(&new)?
+            } else {
+                f64::NAN
+            };
+            let stats = model.train(&data)?;
+            Ok(JobDone::Trained {
+                model: Box::new(model),
+                stats,
+                labels: data.len(),
+                accuracy_new,
+            })
+        }))
+    }
+
+    /// The job of choosing a session's queries at `env_steps`: candidate pairs drawn from
+    /// the annotation buffer, the sampler keeps the best of them.
+    fn choosing(&mut self, env_steps: u64) -> Result<Job> {
+        let session = self.counters.sessions + 1;
+        let left = self.cfg.max_feedback - self.store.counts()?.asked;
+        let k = self.cfg.queries_per_session.min(left).min(self.room()) as usize;
+        // NOTE: the first session is uniform: an untrained ensemble's disagreement
+        // means nothing.
+        let sampler = if session == 1 || !self.model.trained() {
+            Sampler::Uniform
+        } else {
+            self.cfg.sampler
+        };
+        let n = if sampler == Sampler::Uniform {
+            k
+        } else {
+            k * self.cfg.candidate_factor as usize
+        };
+        let idx = candidate_pairs(&mut self.rng, self.buffer.len(), n)?;
+        let candidates: Vec<(Arc<Candidate>, Arc<Candidate>)> = idx
+            .iter()
+            .map(|&(i, j)| (self.buffer.get(i).clone(), self.buffer.get(j).clone()))
+            .collect();
+        let model = self.model.clone();
+        Ok(Box::new(move || {
+            let chosen = if sampler == Sampler::Uniform {
+                (0..k.min(candidates.len())).collect()
+            } else {
+                let probs = model.preference_probs(&distinct_pairs(&candidates).pairs())?;
+                select(sampler, &probs, candidates.len(), k)
+            };
+            Ok(JobDone::Chosen {
+                session,
+                env_steps,
+                sampler,
+                pairs: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
+            })
+        }))
     }
 
     /// Wait for the background job (cancel-safe; only while [`Feedback::busy`]).
@@ -672,6 +672,39 @@ fn target(p: Preference) -> f32 {
         Preference::Second => 1.0,
         Preference::Equal | Preference::Skip => 0.5,
     }
+}
+
+/// Candidate pairs as the ensemble judges them: one segment per distinct trajectory, and
+/// each pair as two indices into them.
+struct Distinct {
+    segs: Vec<Segment>,
+    sides: Vec<(usize, usize)>,
+}
+
+impl Distinct {
+    fn pairs(&self) -> Vec<(&Segment, &Segment)> {
+        self.sides
+            .iter()
+            .map(|&(a, b)| (&self.segs[a], &self.segs[b]))
+            .collect()
+    }
+}
+
+/// One segment per distinct trajectory of `candidates`: the ensemble judges each once.
+fn distinct_pairs(candidates: &[(Arc<Candidate>, Arc<Candidate>)]) -> Distinct {
+    let mut index: HashMap<*const Candidate, usize> = HashMap::new();
+    let mut segs: Vec<Segment> = Vec::new();
+    let mut sides = Vec::with_capacity(candidates.len());
+    for (a, b) in candidates {
+        let mut at = |c: &Arc<Candidate>| {
+            *index.entry(Arc::as_ptr(c)).or_insert_with(|| {
+                segs.push(seg_of(c));
+                segs.len() - 1
+            })
+        };
+        sides.push((at(a), at(b)));
+    }
+    Distinct { segs, sides }
 }
 
 fn seg_of(c: &Candidate) -> Segment {

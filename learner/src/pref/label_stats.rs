@@ -191,7 +191,7 @@ pub fn report(s: &LabelStats) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::labels::{LabelStore, StoredTrajectory};
+    use crate::pref::labels::{LabelStore, StoredTrajectory};
     use pbrl_common::wire::{Answer, Preference};
 
     fn person(q: u64, p: Preference, who: &str, shadow: Preference, repeat: bool) -> Answer {

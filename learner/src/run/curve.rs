@@ -11,6 +11,10 @@ use pbrl_common::wire::{EvalRequest, EvalResult};
 use pbrl_common::Outcome;
 use serde::{Deserialize, Serialize};
 
+use crate::pref::feedback::Feedback;
+use crate::pref::reward::TrainReward;
+use crate::run::checkpoint::Progress;
+
 /// The row struct, its CSV header and its CSV line from one list of
 /// `name: type => "format"`.
 macro_rules! columns {
@@ -155,6 +159,108 @@ impl CurveRow {
             labellers: 0,
         }
     }
+}
+
+impl CurveRow {
+    /// The row at `p.env_steps`: the training episodes of `window`, the loop's counters
+    /// and speeds, the reward's state and preference learning's counters. `dropped`: the
+    /// run's one count of messages dropped ([`crate::run::learner::Learner::dropped`]).
+    pub fn at(
+        p: &Progress,
+        window: Window,
+        clock: &Clock,
+        reward: &TrainReward,
+        feedback: Option<&Feedback>,
+        dropped: u64,
+        labellers: u64,
+    ) -> Result<Self> {
+        let here = clock.start.elapsed().as_secs_f64().max(1e-9);
+        let n = window.episodes.max(1) as f64;
+        let mut row = CurveRow {
+            wall_s: clock.wall_s(p).max(1e-9),
+            episodes: window.episodes,
+            return_truth: window.truth / n,
+            success_rate: window.success / n,
+            return_human: window.human / n,
+            return_task: window.task / n,
+            loss_critic: p.losses.critic,
+            loss_actor: p.losses.actor,
+            alpha: p.losses.alpha,
+            loss_value: p.losses.value,
+            loss_policy: p.losses.policy,
+            approx_kl: p.losses.approx_kl,
+            env_steps_per_s: (p.env_steps - clock.env_steps_at) as f64 / here,
+            updates_per_s: (p.updates - clock.updates_at) as f64 / here,
+            updates: p.updates,
+            policy_version: p.version,
+            dropped_messages: dropped,
+            stale_trajectories: p.stale,
+            retried_messages: p.receipts.repeated + p.eval_retries,
+            lost_messages: p.receipts.missing(),
+            lambda: reward.lambda(p.env_steps),
+            pretraining: reward.pretraining() as u8,
+            ..CurveRow::empty(p.env_steps)
+        };
+        if let Some(f) = feedback {
+            let c = f.counts()?;
+            row.labels_asked = c.asked;
+            row.labels_answered = c.answered;
+            row.labels_equal = c.equal;
+            row.labels_skipped = c.skipped;
+            row.labels_expired = c.expired;
+            row.sessions = f.counters.sessions;
+            row.reward_accuracy = f.counters.accuracy;
+            row.reward_accuracy_new = f.counters.accuracy_new;
+            row.retried_messages += f.counters.retried_queries;
+            row.labels_open = c.open;
+            row.waiting_labels = f.waiting(p.env_steps)? as u8;
+            row.labellers = labellers;
+        }
+        Ok(row)
+    }
+}
+
+/// The run's clock: the wall time of the processes before this one, and where this one
+/// started (its speeds count from there).
+pub struct Clock {
+    pub start: Instant,
+    pub env_steps_at: u64,
+    pub updates_at: u64,
+}
+
+impl Clock {
+    pub fn new(p: &Progress) -> Self {
+        Self {
+            start: Instant::now(),
+            env_steps_at: p.env_steps,
+            updates_at: p.updates,
+        }
+    }
+
+    /// Wall time of the whole run so far.
+    pub fn wall_s(&self, p: &Progress) -> f64 {
+        p.wall_s + self.start.elapsed().as_secs_f64()
+    }
+}
+
+/// The progress bar of a run of `total` env steps now at `at`: figures rounded for people.
+pub fn progress_bar(total: u64, at: u64) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(total);
+    let rate = |s: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+        // NOTE: the write can only fail if the bar's buffer does; nothing to do then.
+        let _ = write!(w, "{}/s", indicatif::HumanCount(s.per_sec().round() as u64));
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {human_pos}/{human_len} env steps, {rate}, {eta} left, {msg}",
+        )
+        .expect("the progress template is valid")
+        .with_key("rate", rate)
+        .progress_chars("=> "),
+    );
+    bar.set_position(at.min(total));
+    bar.reset_eta();
+    bar
 }
 
 /// Episode statistics accumulated between curve rows.
@@ -353,6 +459,21 @@ impl Curve {
         }
         Ok(())
     }
+
+    /// The run is over: the bar says it finished, or where it was stopped (it stays
+    /// there, not at the total).
+    pub fn end_bar(&self, stopped_at: Option<u64>) {
+        let Some(bar) = &self.bar else {
+            return;
+        };
+        match stopped_at {
+            None => bar.finish(),
+            Some(env_steps) => bar.abandon_with_message(format!(
+                "stopped at {} env steps (the same command resumes)",
+                indicatif::HumanCount(env_steps)
+            )),
+        }
+    }
 }
 
 /// Pearson correlation of `a` and `b` (NaN when either is constant or they are empty).
@@ -389,6 +510,33 @@ mod tests {
             row.csv().split(',').count()
         );
         assert!(CurveRow::header().starts_with("env_steps,wall_s,"));
+    }
+
+    #[test]
+    fn the_bar_rounds_its_rate_and_a_stop_says_where_the_run_stopped() {
+        let term = indicatif::InMemoryTerm::new(4, 160);
+        let bar = progress_bar(1_000_000, 0);
+        bar.set_draw_target(indicatif::ProgressDrawTarget::term_like(Box::new(
+            term.clone(),
+        )));
+        for at in (0..=23_400).step_by(600) {
+            bar.set_position(at);
+        }
+        let curve = Curve::new(None, 0, Some(bar));
+        curve.end_bar(Some(23_400));
+        let shown = term.contents();
+        assert!(shown.contains("23,400/1,000,000 env steps"), "{shown}");
+        assert!(shown.contains("stopped at 23,400 env steps"), "{shown}");
+        assert!(!shown.contains("1,000,000/1,000,000"), "{shown}");
+        let rate = shown
+            .split(" env steps, ")
+            .nth(1)
+            .and_then(|r| r.split("/s").next())
+            .unwrap_or_default();
+        assert!(
+            !rate.is_empty() && rate.chars().all(|c| c.is_ascii_digit() || c == ','),
+            "a rounded rate: {rate:?} in {shown}"
+        );
     }
 
     #[test]

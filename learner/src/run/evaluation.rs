@@ -6,13 +6,12 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use pbrl_common::bus::put_message;
-use pbrl_common::wire::{Body, EvalRequest};
-use pbrl_common::Keys;
-use zenoh::qos::Priority;
-use zenoh::Session;
+use pbrl_common::wire::{EvalRequest, EvalSteps};
 
-use crate::curve::{Curve, CurveRow, Pending};
+use crate::pref::reward_model::RewardModel;
+use crate::run::bus::LearnerBus;
+use crate::run::curve::correlation;
+use crate::run::curve::{Curve, CurveRow, Pending};
 
 /// Seeds of the evaluation episodes: the same at every row, apart from training seeds
 /// (`actor::runner::episode_seed`, below 2^63).
@@ -48,13 +47,12 @@ impl Actors {
 
 /// Ask for the evaluation of `row`'s weights; the row waits for it.
 pub async fn ask(
-    session: &Session,
-    keys: &Keys,
+    bus: &LearnerBus,
     curve: &mut Curve,
     row: CurveRow,
     request: EvalRequest,
 ) -> Result<()> {
-    send(session, keys, &request).await?;
+    bus.evaluate(&request).await?;
     curve.pending.push_back(Pending {
         row,
         request,
@@ -66,12 +64,7 @@ pub async fn ask(
 
 /// Ask again (another actor, if there is one) for evaluations not answered in time;
 /// returns how many were asked again.
-pub async fn retry(
-    session: &Session,
-    keys: &Keys,
-    curve: &mut Curve,
-    actors: &mut Actors,
-) -> Result<u64> {
+pub async fn retry(bus: &LearnerBus, curve: &mut Curve, actors: &mut Actors) -> Result<u64> {
     let mut asked = 0;
     for p in curve.pending.iter_mut() {
         if p.row.eval_episodes > 0 || p.sent.elapsed() < EVAL_TIMEOUT {
@@ -87,18 +80,36 @@ pub async fn retry(
             tries = p.tries,
             "an evaluation went unanswered; asking again"
         );
-        send(session, keys, &p.request).await?;
+        bus.evaluate(&p.request).await?;
     }
     Ok(asked)
 }
 
-async fn send(session: &Session, keys: &Keys, request: &EvalRequest) -> Result<()> {
-    put_message(
-        session,
-        keys,
-        keys.eval_request(request.actor),
-        &Body::EvalRequest(Box::new(request.clone())),
-        Priority::Data,
-    )
-    .await
+/// How well `model` tracks the ground truth on an evaluation's episodes: the Pearson
+/// correlation of r_hat with r per step and per episode sum. Episodes whose lengths do not
+/// agree with the model are left out (with a warning); NaN when none is left.
+pub fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<(f64, f64)> {
+    let (mut step_hat, mut step_true, mut sum_hat, mut sum_true) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for e in episodes {
+        let n = e.truth.len();
+        if e.obs.len() != n * model.obs_dim() || e.actions.len() != n * model.act_dim() {
+            tracing::warn!(
+                steps = n,
+                obs = e.obs.len(),
+                actions = e.actions.len(),
+                "an evaluation episode's steps do not fit the reward model; left out"
+            );
+            continue;
+        }
+        let r = model.predict(&e.obs, &e.actions)?;
+        sum_hat.push(r.iter().map(|x| *x as f64).sum());
+        sum_true.push(e.truth.iter().map(|x| *x as f64).sum());
+        step_hat.extend(r.iter().map(|x| *x as f64));
+        step_true.extend(e.truth.iter().map(|x| *x as f64));
+    }
+    Ok((
+        correlation(&step_hat, &step_true),
+        correlation(&sum_hat, &sum_true),
+    ))
 }

@@ -17,9 +17,10 @@ use candle_core::{Device, Tensor};
 use pbrl_common::Trajectory;
 use serde::{Deserialize, Serialize};
 
-use crate::entropy::StateEntropy;
-use crate::reward_model::RewardModel;
-use crate::sac::Batch;
+use crate::pref::config::PrefConfig;
+use crate::pref::entropy::StateEntropy;
+use crate::pref::reward_model::RewardModel;
+use crate::rl::replay::Batch;
 
 /// The reward the policy is trained on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -86,9 +87,71 @@ pub struct TrainReward {
     /// Divide a SAC minibatch's decoupled reward by max(1, lambda_t)
     /// (`--sac-lambda-scale`).
     pub lambda_scale: bool,
+    /// When trajectories' states join the entropy bonus's pool ([`TrainReward::observe`]).
+    pub pool: Pool,
+    /// States of the rollout being collected, for the pool once it is trained (PPO).
+    rollout_states: Vec<f32>,
+}
+
+/// When a trajectory's states join the entropy bonus's pool: the states the backbone
+/// trains on are in it, the ones it has not seen yet are not.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pool {
+    /// At once: SAC's minibatches are drawn from its replay, which holds them already.
+    AtOnce,
+    /// After the rollout they belong to is trained on (PPO: a rollout's rewards are
+    /// taken against the states of earlier rollouts).
+    AfterRollout,
 }
 
 impl TrainReward {
+    /// What `source` trains on with preference learning's settings `pref` over a run of
+    /// `total_steps`: learnt rewards start on the entropy bonus over `obs_dim` observations.
+    pub fn new(source: RewardSource, pref: &PrefConfig, total_steps: u64, obs_dim: usize, pool: Pool) -> Self {
+        Self {
+            source,
+            schedule: pref.lambda_schedule,
+            lambda0: pref.lambda0,
+            rho: pref.rho,
+            total_steps,
+            model: None,
+            entropy: source
+                .learnt()
+                .then(|| StateEntropy::new(obs_dim, pref.knn_k, pref.knn_pool)),
+            lambda_scale: false,
+            pool,
+            rollout_states: Vec::new(),
+        }
+    }
+
+    /// A trajectory the backbone is about to train on: while pretraining, its states join
+    /// the entropy bonus's pool (when, [`Pool`] says).
+    pub fn observe(&mut self, t: &Trajectory) {
+        if self.model.is_some() {
+            return;
+        }
+        let Some(e) = self.entropy.as_mut() else {
+            return;
+        };
+        let states = &t.obs[..t.steps() * t.obs_dim as usize];
+        match self.pool {
+            Pool::AtOnce => e.add(states),
+            Pool::AfterRollout => self.rollout_states.extend_from_slice(states),
+        }
+    }
+
+    /// A trained ensemble: r_hat takes over from the entropy bonus (the first one ends the
+    /// pretraining: returns true then).
+    pub fn install(&mut self, model: Arc<RewardModel>) -> bool {
+        let first = self.model.is_none();
+        self.model = Some(model);
+        if first {
+            self.entropy = None;
+            self.rollout_states.clear();
+        }
+        first
+    }
+
     /// Pretraining on the state-entropy bonus: a learnt reward with no trained model yet.
     pub fn pretraining(&self) -> bool {
         self.source.learnt() && self.model.is_none()
@@ -179,6 +242,11 @@ impl TrainReward {
             };
             out.push(r);
         }
+        // NOTE: the rollout's states join the pool only now, after its rewards are taken.
+        let states = std::mem::take(&mut self.rollout_states);
+        if let Some(e) = self.entropy.as_mut().filter(|_| self.model.is_none()) {
+            e.add(&states);
+        }
         Ok(out)
     }
 }
@@ -206,7 +274,7 @@ mod tests {
 
     #[test]
     fn the_lambda_scale_keeps_the_task_part_and_shrinks_r_hat() {
-        use crate::reward_model::RewardModelConfig;
+        use crate::pref::reward_model::RewardModelConfig;
         let model = RewardModel::new(RewardModelConfig::default(), 2, 1).unwrap();
         let dev = &Device::Cpu;
         let obs = Tensor::new(&[[0.1f32, -0.2], [0.3, 0.4]], dev).unwrap();
@@ -236,6 +304,8 @@ mod tests {
             model: Some(Arc::new(model)),
             entropy: None,
             lambda_scale: false,
+            pool: Pool::AtOnce,
+            rollout_states: Vec::new(),
         };
         let rows = |r: &mut TrainReward, t| -> Vec<f32> {
             r.minibatch(&b, t)

@@ -1,0 +1,492 @@
+//! The ensemble's golden values, gradients against autodiff, and learning tests.
+use super::*;
+use rand::Rng;
+use crate::testutil::assert_same_gradients;
+
+/// Draw `n` random segments of `steps` steps (test helper and bench).
+fn random_segments(
+    rng: &mut impl Rng,
+    n: usize,
+    steps: usize,
+    o: usize,
+    a: usize,
+) -> Vec<Arc<Segment>> {
+    (0..n)
+        .map(|_| {
+            Arc::new(Segment {
+                obs: (0..steps * o)
+                    .map(|_| rng.random_range(-1.0..1.0))
+                    .collect(),
+                actions: (0..steps * a)
+                    .map(|_| rng.random_range(-1.2..1.2))
+                    .collect(),
+            })
+        })
+        .collect()
+}
+
+fn col(v: &[f32]) -> Tensor {
+    Tensor::from_slice(v, v.len(), &Device::Cpu).unwrap()
+}
+
+fn small(seed: u64, hidden: &[usize]) -> RewardModelConfig {
+    RewardModelConfig {
+        hidden: hidden.to_vec(),
+        seed,
+        ..RewardModelConfig::default()
+    }
+}
+
+/// The members' sums and the mean reward computed with candle's ops from scratch.
+fn reference_rewards(model: &RewardModel, obs: &[f32], act: &[f32]) -> Vec<Vec<f32>> {
+    let mut x = Vec::new();
+    let (o, a) = (model.obs_dim, model.act_dim);
+    for (orow, arow) in obs.chunks_exact(o).zip(act.chunks_exact(a)) {
+        for ((v, m), s) in orow.iter().zip(&model.norm.mean).zip(&model.norm.std) {
+            x.push(((v - m) / s).clamp(-10.0, 10.0));
+        }
+        x.extend(arow.iter().map(|v| v.clamp(-1.0, 1.0)));
+    }
+    let x = Tensor::from_vec(x, (obs.len() / o, o + a), &Device::Cpu).unwrap();
+    model
+        .nets
+        .iter()
+        .map(|n| {
+            n.net
+                .forward(&x)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap()
+        })
+        .collect()
+}
+
+#[test]
+fn bradley_terry_loss_matches_the_reference() {
+    // Reference (Python, math module only):
+    //   import math
+    //   def ce(s0, s1, p):   # -[(1-p) log softmax(s)[0] + p log softmax(s)[1]]
+    //       l0 = s0 - math.log(math.exp(s0) + math.exp(s1))
+    //       l1 = s1 - math.log(math.exp(s0) + math.exp(s1))
+    //       return -((1 - p) * l0 + p * l1)
+    //   s0, s1, p = [1.0, 2.0, -0.5, 30.0], [3.0, -1.0, 0.5, -30.0], [1.0, 0.0, 0.5, 1.0]
+    //   [ce(*x) for x in zip(s0, s1, p)]
+    //   # [0.12692801104297263, 0.04858735157374206, 0.8132616875182228, 60.0]
+    //   sum(_) / 4   # 15.247194262533735
+    let want = [0.126_928_01f64, 0.048_587_35, 0.813_261_7, 60.0];
+    for (i, w) in want.iter().enumerate() {
+        let (s0, s1, p) = (
+            [1.0f32, 2.0, -0.5, 30.0][i],
+            [3.0f32, -1.0, 0.5, -30.0][i],
+            [1.0f32, 0.0, 0.5, 1.0][i],
+        );
+        let got = bradley_terry_loss(&col(&[s0]), &col(&[s1]), &col(&[p]))
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap() as f64;
+        assert!(
+            (got - w).abs() < 1e-5 * w.max(1.0),
+            "pair {i}: {got} vs {w}"
+        );
+    }
+    let all = bradley_terry_loss(
+        &col(&[1.0, 2.0, -0.5, 30.0]),
+        &col(&[3.0, -1.0, 0.5, -30.0]),
+        &col(&[1.0, 0.0, 0.5, 1.0]),
+    )
+    .unwrap()
+    .to_scalar::<f32>()
+    .unwrap();
+    assert!((all - 15.247_194).abs() < 1e-4, "{all}");
+    // The equal label's gradient: d/d s1 = P - p = sigmoid(1) - 0.5 = 0.2310585786300049,
+    // so a soft target pulls P toward 0.5 from either side.
+    let s1 = candle_core::Var::from_slice(&[0.5f32], 1, &Device::Cpu).unwrap();
+    let l = bradley_terry_loss(&col(&[-0.5]), s1.as_tensor(), &col(&[0.5])).unwrap();
+    let g = l
+        .backward()
+        .unwrap()
+        .get(&s1)
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()[0];
+    assert!((g - 0.231_058_58).abs() < 1e-6, "{g}");
+}
+
+#[test]
+fn hand_gradients_are_candle_autodiffs() {
+    let mut model = RewardModel::new(small(3, &[16, 12]), 3, 2).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    // Uneven lengths, one equal label, a target that is neither.
+    let segs: Vec<Arc<Segment>> = [7, 9, 5, 11, 8, 6]
+        .iter()
+        .flat_map(|&s| random_segments(&mut rng, 1, s, 3, 2))
+        .collect();
+    let labels: Vec<Labelled> = [(0, 1, 1.0), (2, 3, 0.0), (4, 5, 0.5), (1, 4, 0.0)]
+        .iter()
+        .map(|&(a, b, t)| Labelled {
+            first: segs[a].clone(),
+            second: segs[b].clone(),
+            target: t,
+        })
+        .collect();
+    // A normaliser that is not the identity.
+    model.norm = ObsNorm::fit(segs.iter().map(|s| &**s), 3);
+    let pairs: Vec<&Labelled> = labels.iter().collect();
+    for m in 0..2 {
+        // Chunks of at most 20 rows (one pair each here) and one chunk of all.
+        for chunk in [20, 10_000] {
+            let (got, loss, right, hard) = model.member_gradients(m, &pairs, chunk).unwrap();
+            let mut s0 = Vec::new();
+            let mut s1 = Vec::new();
+            for l in &labels {
+                for (seg, out) in [(&l.first, &mut s0), (&l.second, &mut s1)] {
+                    let mut x = Vec::new();
+                    model.push_inputs(&seg.obs, &seg.actions, &mut x);
+                    let x = model.input_tensor(x).unwrap();
+                    out.push(model.nets[m].net.forward(&x).unwrap().sum_all().unwrap());
+                }
+            }
+            let (s0, s1) = (
+                Tensor::stack(&s0, 0).unwrap(),
+                Tensor::stack(&s1, 0).unwrap(),
+            );
+            let t = col(&labels.iter().map(|l| l.target).collect::<Vec<_>>());
+            let want = bradley_terry_loss(&s0, &s1, &t).unwrap();
+            let w = want.to_scalar::<f32>().unwrap() as f64;
+            assert!((loss / 4.0 - w).abs() < 1e-5, "{loss} / 4 vs {w}");
+            assert_eq!(hard, 3);
+            let d: Vec<f32> = (s1 - s0).unwrap().to_vec1().unwrap();
+            let want_right = [0, 1, 3]
+                .iter()
+                .filter(|&&i| (d[i] > 0.0) == (labels[i].target > 0.5))
+                .count();
+            assert_eq!(right, want_right);
+            assert_same_gradients(&model.opts[m].vars, &got, &want.backward().unwrap());
+        }
+    }
+}
+
+#[test]
+fn r_hat_is_the_mean_of_members_in_the_open_interval() {
+    let mut model = RewardModel::new(small(5, &[32, 32]), 4, 2).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let segs = random_segments(&mut rng, 6, 10, 4, 2);
+    let data: Vec<Labelled> = (0..3)
+        .map(|i| Labelled {
+            first: segs[2 * i].clone(),
+            second: segs[2 * i + 1].clone(),
+            target: 1.0,
+        })
+        .collect();
+    model.train(&data).unwrap();
+    assert!(model.trained());
+    // Large observations too: the normaliser clips them.
+    let obs: Vec<f32> = (0..50 * 4)
+        .map(|i| ((i * 37 % 101) as f32 - 50.0) * 0.7)
+        .collect();
+    let act: Vec<f32> = (0..50 * 2)
+        .map(|i| ((i * 13 % 7) as f32 - 3.0) * 0.6)
+        .collect();
+    let members = reference_rewards(&model, &obs, &act);
+    let got = model.predict(&obs, &act).unwrap();
+    for (k, g) in got.iter().enumerate() {
+        let mean = members.iter().map(|m| m[k]).sum::<f32>() / 3.0;
+        assert!((g - mean).abs() < 1e-5, "row {k}: {g} vs {mean}");
+        assert!(*g > -1.0 && *g < 1.0);
+        assert!(members.iter().all(|m| m[k] > -1.0 && m[k] < 1.0));
+    }
+    // The tensor path gives the same.
+    let ot = Tensor::from_slice(&obs, (50, 4), &Device::Cpu).unwrap();
+    let at = Tensor::from_slice(&act, (50, 2), &Device::Cpu).unwrap();
+    let t = model.predict_tensor(&ot, &at).unwrap();
+    assert_eq!(t.dims(), &[50, 1]);
+    let t = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    assert!(got.iter().zip(&t).all(|(a, b)| (a - b).abs() < 1e-6));
+    // Returns are each member's sum; probabilities come from them.
+    let seg = &segs[0];
+    let per_member = reference_rewards(&model, &seg.obs, &seg.actions);
+    let ret = model.returns(seg).unwrap();
+    for (r, m) in ret.iter().zip(&per_member) {
+        assert!((r - m.iter().sum::<f32>()).abs() < 1e-4);
+    }
+    let probs = model
+        .preference_probs(&[(&segs[0], &segs[1]), (&segs[2], &segs[3])])
+        .unwrap();
+    assert_eq!((probs.len(), probs[0].len()), (3, 2));
+    let r1 = model.returns(&segs[1]).unwrap();
+    for m in 0..3 {
+        let want = 1.0 / (1.0 + (ret[m] - r1[m]).exp());
+        assert!((probs[m][0] - want).abs() < 1e-5);
+    }
+    // The model is Send, so it can be trained on another thread.
+    fn send<T: Send>(_: &T) {}
+    send(&model);
+}
+
+#[test]
+fn members_draw_their_own_orders_deterministically() {
+    for resample in [Resample::Bootstrap, Resample::Shuffle] {
+        let cfg = RewardModelConfig {
+            resample,
+            ..small(11, &[8])
+        };
+        let mut a = RewardModel::new(cfg.clone(), 2, 1).unwrap();
+        let mut b = RewardModel::new(cfg.clone(), 2, 1).unwrap();
+        let oa = a.draw_orders(100);
+        assert_eq!(
+            oa,
+            b.draw_orders(100),
+            "{resample:?}: same seed, same orders"
+        );
+        assert_ne!(
+            oa,
+            a.draw_orders(100),
+            "{resample:?}: a new epoch, new orders"
+        );
+        assert!(
+            oa[0] != oa[1] && oa[1] != oa[2],
+            "{resample:?}: members differ"
+        );
+        for o in &oa {
+            assert_eq!(o.len(), 100);
+            let mut sorted = o.clone();
+            sorted.sort();
+            sorted.dedup();
+            match resample {
+                Resample::Shuffle => assert_eq!(sorted, (0..100).collect::<Vec<_>>()),
+                // P[no repeat in 100 draws of 100] = 100! / 100^100, about 1e-42.
+                Resample::Bootstrap => assert!(sorted.len() < 100),
+            }
+        }
+        let mut c = RewardModel::new(RewardModelConfig { seed: 12, ..cfg }, 2, 1).unwrap();
+        assert_ne!(oa, c.draw_orders(100), "{resample:?}: another seed");
+    }
+    // Whole training sessions are deterministic per seed too.
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let segs = random_segments(&mut rng, 40, 5, 2, 1);
+    let data: Vec<Labelled> = (0..20)
+        .map(|i| Labelled {
+            first: segs[2 * i].clone(),
+            second: segs[2 * i + 1].clone(),
+            target: (i % 3) as f32 / 2.0,
+        })
+        .collect();
+    let cfg = RewardModelConfig {
+        batch: 8,
+        max_epochs: 3,
+        ..small(13, &[8, 8])
+    };
+    let weights = |m: &RewardModel| -> Vec<_> {
+        m.nets.iter().map(|n| export(&n.varmap).unwrap()).collect()
+    };
+    let mut a = RewardModel::new(cfg.clone(), 2, 1).unwrap();
+    let mut b = RewardModel::new(cfg.clone(), 2, 1).unwrap();
+    assert_eq!(a.train(&data).unwrap(), b.train(&data).unwrap());
+    assert_eq!(weights(&a), weights(&b));
+    let mut c = RewardModel::new(
+        RewardModelConfig {
+            resample: Resample::Shuffle,
+            ..cfg
+        },
+        2,
+        1,
+    )
+    .unwrap();
+    c.train(&data).unwrap();
+    assert_ne!(
+        weights(&a),
+        weights(&c),
+        "shuffle trains otherwise than bootstrap"
+    );
+}
+
+/// Pairs of `steps`-step segments with an oracle's labels under the true reward
+/// `-|obs0|`: each segment's observations scatter (by +-0.5) around its own centre in
+/// [-1, 1]^3, as whole trajectories differ; the action is noise.
+fn oracle_pairs(rng: &mut impl Rng, n: usize, steps: usize) -> Vec<Labelled> {
+    let mut segment = || {
+        let c: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let obs = (0..steps * 3)
+            .map(|i| c[i % 3] + rng.random_range(-0.5..0.5))
+            .collect();
+        let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
+        Arc::new(Segment { obs, actions })
+    };
+    let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(|o| -o[0].abs()).sum() };
+    (0..n)
+        .map(|_| {
+            let (first, second) = (segment(), segment());
+            let target = if ret(&second) > ret(&first) { 1.0 } else { 0.0 };
+            Labelled {
+                first,
+                second,
+                target,
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn learns_an_oracle_preference_and_generalises() {
+    let mut rng = ChaCha8Rng::seed_from_u64(100);
+    let train = oracle_pairs(&mut rng, 200, 20);
+    let held_out = oracle_pairs(&mut rng, 200, 20);
+    let cfg = RewardModelConfig {
+        batch: 32,
+        lr: 1e-3,
+        ..small(0, &[64, 64, 64])
+    };
+    let mut model = RewardModel::new(cfg, 3, 1).unwrap();
+    let before = model.accuracy(&held_out).unwrap();
+    let stats = model.train(&train).unwrap();
+    let after = model.accuracy(&held_out).unwrap();
+    println!("held-out accuracy {before:.3} -> {after:.3}, {stats:?}");
+    assert!(after >= 0.9, "held-out accuracy {after} ({stats:?})");
+    assert!(model.accuracy(&train).unwrap() >= 0.9);
+}
+
+#[test]
+fn state_and_restore_continue_identically() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let d1 = oracle_pairs(&mut rng, 30, 6);
+    let d2 = oracle_pairs(&mut rng, 45, 6);
+    let cfg = RewardModelConfig {
+        batch: 16,
+        max_epochs: 4,
+        ..small(1, &[16, 16])
+    };
+    let mut a = RewardModel::new(cfg.clone(), 3, 1).unwrap();
+    a.train(&d1).unwrap();
+    let state = a.state().unwrap();
+    let mut b = RewardModel::new(RewardModelConfig { seed: 99, ..cfg }, 3, 1).unwrap();
+    assert!(!b.trained());
+    for ((name, from), (_, to)) in a.networks().into_iter().zip(b.networks()) {
+        assert!(name.starts_with("reward_"));
+        import(to, &export(from).unwrap()).unwrap();
+    }
+    // The state goes through serde as a checkpoint would.
+    let state: RewardModelState =
+        serde_json::from_str(&serde_json::to_string(&state).unwrap()).unwrap();
+    b.restore(&state).unwrap();
+    assert!(b.trained());
+    let seg = &d2[0].first;
+    assert_eq!(
+        a.predict(&seg.obs, &seg.actions).unwrap(),
+        b.predict(&seg.obs, &seg.actions).unwrap()
+    );
+    // A snapshot is the same model and trains apart.
+    let mut c = a.snapshot().unwrap();
+    let all: Vec<Labelled> = d1.iter().chain(&d2).cloned().collect();
+    let (sa, sb, sc) = (
+        a.train(&all).unwrap(),
+        b.train(&all).unwrap(),
+        c.train(&all).unwrap(),
+    );
+    assert_eq!((sa, sa), (sb, sc));
+    let p = a.predict(&seg.obs, &seg.actions).unwrap();
+    assert_eq!(p, b.predict(&seg.obs, &seg.actions).unwrap());
+    assert_eq!(p, c.predict(&seg.obs, &seg.actions).unwrap());
+    assert_eq!(a.state().unwrap(), b.state().unwrap());
+    c.train(&d1).unwrap();
+    assert_eq!(
+        p,
+        a.predict(&seg.obs, &seg.actions).unwrap(),
+        "training the snapshot leaves the original"
+    );
+    // A state of another shape is refused.
+    let mut bad = state.clone();
+    bad.obs_mean.push(0.0);
+    assert!(b.restore(&bad).is_err());
+}
+
+#[test]
+fn max_pairs_bounds_a_training_and_cuts_its_last_epoch() {
+    // D of 45 pairs, a bound of 100: epochs of 45, 45 and 10 pairs. Unbounded, all 5
+    // epochs of 45 (the accuracy target of 2 is never reached).
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let data = oracle_pairs(&mut rng, 45, 6);
+    let cfg = |max_pairs| RewardModelConfig {
+        batch: 16,
+        max_epochs: 5,
+        stop_accuracy: 2.0,
+        max_pairs,
+        ..small(2, &[8, 8])
+    };
+    let mut bounded = RewardModel::new(cfg(100), 3, 1).unwrap();
+    let stats = bounded.train(&data).unwrap();
+    assert_eq!((stats.epochs, stats.pairs), (3, 100), "{stats:?}");
+    let mut free = RewardModel::new(cfg(0), 3, 1).unwrap();
+    let stats = free.train(&data).unwrap();
+    assert_eq!((stats.epochs, stats.pairs), (5, 225), "{stats:?}");
+    // A bound of one epoch's worth: exactly one epoch.
+    let mut one = RewardModel::new(cfg(45), 3, 1).unwrap();
+    let stats = one.train(&data).unwrap();
+    assert_eq!((stats.epochs, stats.pairs), (1, 45), "{stats:?}");
+}
+
+#[test]
+fn equal_labels_pull_toward_one_half() {
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let s = random_segments(&mut rng, 2, 10, 3, 1);
+    let cfg = RewardModelConfig {
+        batch: 1,
+        lr: 1e-2,
+        max_epochs: 30,
+        // Never stop early: with only equal labels the accuracy is 1 from the start.
+        stop_accuracy: 2.0,
+        ..small(4, &[16, 16])
+    };
+    let mut model = RewardModel::new(cfg, 3, 1).unwrap();
+    let label = |target| {
+        vec![Labelled {
+            first: s[0].clone(),
+            second: s[1].clone(),
+            target,
+        }]
+    };
+    model.train(&label(1.0)).unwrap();
+    let p = |m: &RewardModel| m.preference_probs(&[(&s[0], &s[1])]).unwrap();
+    let sure = p(&model);
+    assert!(sure.iter().all(|q| q[0] > 0.9), "{sure:?}");
+    let stats = model.train(&label(0.5)).unwrap();
+    assert_eq!(
+        stats.accuracy, 1.0,
+        "equal labels are left out of the accuracy"
+    );
+    let soft = p(&model);
+    for (a, b) in sure.iter().zip(&soft) {
+        assert!(
+            (b[0] - 0.5).abs() < 0.5 * (a[0] - 0.5).abs(),
+            "{sure:?} -> {soft:?}"
+        );
+    }
+    assert_eq!(model.accuracy(&label(0.5)).unwrap(), 1.0);
+}
+
+#[test]
+fn malformed_segments_and_targets_are_refused() {
+    let mut model = RewardModel::new(small(0, &[4]), 3, 1).unwrap();
+    let good = Arc::new(Segment {
+        obs: vec![0.0; 6],
+        actions: vec![0.0; 2],
+    });
+    let bad = Arc::new(Segment {
+        obs: vec![0.0; 6],
+        actions: vec![0.0; 3],
+    });
+    let l = |a: &Arc<Segment>, t| {
+        vec![Labelled {
+            first: good.clone(),
+            second: a.clone(),
+            target: t,
+        }]
+    };
+    assert!(model.train(&l(&bad, 1.0)).is_err());
+    assert!(model.train(&l(&good, 1.5)).is_err());
+    assert!(model.predict(&[0.0; 5], &[0.0; 2]).is_err());
+    let stats = model.train(&[]).unwrap();
+    assert_eq!(stats.epochs, 0);
+    assert!(!model.trained());
+}

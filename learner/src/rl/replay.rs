@@ -1,0 +1,230 @@
+//! SAC's replay buffer: transitions as flat f32 rows in a ring, with what a checkpoint
+//! needs to save them as segments and restore them in place.
+
+use candle_core::{Device, Result, Tensor};
+use rand::Rng;
+
+/// Transitions, flat f32 rows, overwritten oldest first once full. A row holds the task
+/// reward r_task and (for diagnostics and the `truth` baseline) the ground truth, never the
+/// reward trained on: that is formed per minibatch ([`Batch`]), so no transition is trained
+/// on with a stale reward model.
+pub struct Replay {
+    pub(crate) obs_dim: usize,
+    act_dim: usize,
+    capacity: usize,
+    len: usize,
+    next: usize,
+    /// Transitions pushed since the start (the buffer holds the last `len` of them).
+    pub total: u64,
+    obs: Vec<f32>,
+    act: Vec<f32>,
+    task: Vec<f32>,
+    truth: Vec<f32>,
+    next_obs: Vec<f32>,
+    done: Vec<f32>,
+}
+
+/// A minibatch as drawn from the replay buffer: `[n, obs]`, `[n, act]`, r_task `[n, 1]`,
+/// the ground truth `[n, 1]`, `[n, obs]`, done `[n, 1]`.
+pub struct Batch {
+    pub obs: Tensor,
+    pub act: Tensor,
+    pub task: Tensor,
+    pub truth: Tensor,
+    pub next_obs: Tensor,
+    pub done: Tensor,
+}
+
+impl Replay {
+    pub fn new(obs_dim: usize, act_dim: usize, capacity: usize) -> Self {
+        Self {
+            obs_dim,
+            act_dim,
+            capacity,
+            len: 0,
+            next: 0,
+            total: 0,
+            obs: Vec::new(),
+            act: Vec::new(),
+            task: Vec::new(),
+            truth: Vec::new(),
+            next_obs: Vec::new(),
+            done: Vec::new(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Store one transition with its rewards `[r_task, truth]`.
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        act: &[f32],
+        rewards: [f32; 2],
+        next_obs: &[f32],
+        done: bool,
+    ) {
+        let (o, a, i) = (self.obs_dim, self.act_dim, self.next);
+        if self.len < self.capacity {
+            self.obs.extend_from_slice(obs);
+            self.act.extend_from_slice(act);
+            self.task.push(rewards[0]);
+            self.truth.push(rewards[1]);
+            self.next_obs.extend_from_slice(next_obs);
+            self.done.push(done as u8 as f32);
+            self.len += 1;
+        } else {
+            self.obs[i * o..(i + 1) * o].copy_from_slice(obs);
+            self.act[i * a..(i + 1) * a].copy_from_slice(act);
+            self.task[i] = rewards[0];
+            self.truth[i] = rewards[1];
+            self.next_obs[i * o..(i + 1) * o].copy_from_slice(next_obs);
+            self.done[i] = done as u8 as f32;
+        }
+        self.next = (self.next + 1) % self.capacity;
+        self.total += 1;
+    }
+
+    /// Numbers per transition in [`Replay::rows`]: obs, act, r_task, truth, next obs, done.
+    pub fn row_len(&self) -> usize {
+        2 * self.obs_dim + self.act_dim + 3
+    }
+
+    /// Transitions `start..end` (counted from the start of the run; all still held), one
+    /// row of [`Replay::row_len`] numbers each.
+    pub fn rows(&self, start: u64, end: u64) -> Vec<f32> {
+        assert!(
+            start <= end && end <= self.total && start + self.len as u64 >= self.total,
+            "transitions {start}..{end} are not all in the buffer"
+        );
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let mut out = Vec::with_capacity((end - start) as usize * self.row_len());
+        for n in start..end {
+            // NOTE: transition n sits at (n mod capacity): the ring fills in order.
+            let i = (n % self.capacity as u64) as usize;
+            out.extend_from_slice(&self.obs[i * o..(i + 1) * o]);
+            out.extend_from_slice(&self.act[i * a..(i + 1) * a]);
+            out.push(self.task[i]);
+            out.push(self.truth[i]);
+            out.extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
+            out.push(self.done[i]);
+        }
+        out
+    }
+
+    /// Refill an empty buffer from rows of transitions `start..` (as [`Replay::rows`] lays
+    /// them out), each at the place it had: the same buffer, the same minibatches.
+    pub fn restore(&mut self, start: u64, rows: &[f32]) -> Result<()> {
+        let n = (rows.len() / self.row_len()) as u64;
+        let end = start + n;
+        if self.total != 0 || !rows.len().is_multiple_of(self.row_len()) {
+            candle_core::bail!("replay restore needs an empty buffer and whole rows");
+        }
+        if start > end.saturating_sub(self.capacity as u64) {
+            candle_core::bail!(
+                "replay rows {start}..{end} do not cover the buffer's last {} transitions",
+                self.capacity
+            );
+        }
+        if end <= self.capacity as u64 {
+            self.push_rows(rows);
+            return Ok(());
+        }
+        // A full ring: transition k sits at k mod capacity.
+        let (o, a, c) = (self.obs_dim, self.act_dim, self.capacity);
+        self.obs = vec![0.0; c * o];
+        self.act = vec![0.0; c * a];
+        self.task = vec![0.0; c];
+        self.truth = vec![0.0; c];
+        self.next_obs = vec![0.0; c * o];
+        self.done = vec![0.0; c];
+        self.len = c;
+        let skip = (end - c as u64 - start) as usize;
+        self.total = end - c as u64;
+        self.next = (self.total % c as u64) as usize;
+        for r in rows.chunks_exact(self.row_len()).skip(skip) {
+            let (obs, rest) = r.split_at(o);
+            let (act, rest) = rest.split_at(a);
+            let (next_obs, done) = rest[2..].split_at(o);
+            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
+        }
+        Ok(())
+    }
+
+    /// Push rows as [`Replay::rows`] lays them out.
+    pub fn push_rows(&mut self, rows: &[f32]) {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        for r in rows.chunks_exact(self.row_len()) {
+            let (obs, rest) = r.split_at(o);
+            let (act, rest) = rest.split_at(a);
+            let (next_obs, done) = rest[2..].split_at(o);
+            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
+        }
+    }
+
+    /// A uniform minibatch.
+    pub(crate) fn sample(&self, rng: &mut impl Rng, n: usize) -> Result<Batch> {
+        let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..self.len)).collect();
+        let rows = |src: &[f32], w: usize| -> Result<Tensor> {
+            let mut out = Vec::with_capacity(n * w);
+            for &i in &idx {
+                out.extend_from_slice(&src[i * w..(i + 1) * w]);
+            }
+            Tensor::from_vec(out, (n, w), &Device::Cpu)
+        };
+        Ok(Batch {
+            obs: rows(&self.obs, self.obs_dim)?,
+            act: rows(&self.act, self.act_dim)?,
+            task: rows(&self.task, 1)?,
+            truth: rows(&self.truth, 1)?,
+            next_obs: rows(&self.next_obs, self.obs_dim)?,
+            done: rows(&self.done, 1)?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_replay_buffer_restored_from_its_rows_is_the_same_buffer() {
+        let mut a = Replay::new(2, 1, 5);
+        for k in 0..13 {
+            let x = k as f32;
+            a.push(
+                &[x, -x],
+                &[0.5 * x],
+                [x * 10.0, -x],
+                &[x + 1.0, 0.0],
+                k % 4 == 0,
+            );
+        }
+        // The last 5 transitions (8..13), the ring wrapped twice.
+        let mut b = Replay::new(2, 1, 5);
+        b.restore(8, &a.rows(8, 13)).unwrap();
+        assert_eq!((b.len, b.next, b.total), (a.len, a.next, a.total));
+        assert_eq!((&b.obs, &b.act, &b.task), (&a.obs, &a.act, &a.task));
+        assert_eq!(&b.truth, &a.truth);
+        assert_eq!((&b.next_obs, &b.done), (&a.next_obs, &a.done));
+        // Not full yet: rows from the start.
+        let mut d = Replay::new(2, 1, 50);
+        for k in 0..13 {
+            d.push(&[k as f32, 1.0], &[0.0], [1.0, 2.0], &[0.0, 2.0], false);
+        }
+        let mut c = Replay::new(2, 1, 50);
+        c.restore(0, &d.rows(0, 13)).unwrap();
+        assert_eq!(
+            (c.len, c.next, c.total, &c.obs),
+            (d.len, d.next, d.total, &d.obs)
+        );
+        // Rows that do not reach back far enough are refused.
+        assert!(Replay::new(2, 1, 5).restore(9, &a.rows(9, 13)).is_err());
+    }
+}
