@@ -9,6 +9,7 @@
 //! them all.
 
 pub mod bench;
+pub mod flags;
 pub mod optim;
 pub mod pref;
 pub mod rl;

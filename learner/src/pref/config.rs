@@ -75,15 +75,8 @@ pub struct PrefConfig {
 }
 
 impl Default for PrefConfig {
+    /// Every field at its flag's default.
     fn default() -> Self {
-        use clap::Parser;
-        #[derive(clap::Parser)]
-        struct Defaults {
-            #[command(flatten)]
-            pref: PrefConfig,
-        }
-        // NOTE: the defaults are clap's, so the two cannot drift apart; parsing no
-        // arguments cannot fail.
-        Defaults::parse_from(["pbrl"]).pref
+        crate::flags::defaults()
     }
 }

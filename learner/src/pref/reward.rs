@@ -107,7 +107,13 @@ pub enum Pool {
 impl TrainReward {
     /// What `source` trains on with preference learning's settings `pref` over a run of
     /// `total_steps`: learnt rewards start on the entropy bonus over `obs_dim` observations.
-    pub fn new(source: RewardSource, pref: &PrefConfig, total_steps: u64, obs_dim: usize, pool: Pool) -> Self {
+    pub fn new(
+        source: RewardSource,
+        pref: &PrefConfig,
+        total_steps: u64,
+        obs_dim: usize,
+        pool: Pool,
+    ) -> Self {
         Self {
             source,
             schedule: pref.lambda_schedule,

@@ -73,22 +73,9 @@ pub struct PpoConfig {
 }
 
 impl Default for PpoConfig {
+    /// Every field at its flag's default.
     fn default() -> Self {
-        Self {
-            hidden: vec![512, 512],
-            rollout_steps: 16 * 200,
-            epochs: 10,
-            minibatch: 256,
-            gamma: 0.99,
-            gae_lambda: 0.98,
-            clip: 0.2,
-            lr: 3e-4,
-            value_coef: 0.5,
-            max_grad_norm: 0.5,
-            target_kl: 0.03,
-            obs_clip: 10.0,
-            seed: 0,
-        }
+        crate::flags::defaults()
     }
 }
 

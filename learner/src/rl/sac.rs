@@ -94,22 +94,9 @@ fn one() -> f64 {
 }
 
 impl Default for SacConfig {
+    /// Every field at its flag's default.
     fn default() -> Self {
-        Self {
-            hidden: vec![256, 256],
-            batch: 256,
-            gamma: 0.99,
-            tau: 0.005,
-            lr: 3e-4,
-            init_alpha: 0.1,
-            reward_scale: 1.0,
-            lambda_scale: false,
-            target_entropy: None,
-            replay_capacity: 1_000_000,
-            random_steps: 600,
-            update_every: 10,
-            seed: 0,
-        }
+        crate::flags::defaults()
     }
 }
 
@@ -184,7 +171,10 @@ fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
 impl Sac {
     /// The replay's transitions: the first one it still holds and the number pushed.
     pub fn replay_span(&self) -> (u64, u64) {
-        (self.replay.total - self.replay.len() as u64, self.replay.total)
+        (
+            self.replay.total - self.replay.len() as u64,
+            self.replay.total,
+        )
     }
 
     /// Rows of the replay's transitions `from..to` ([`Replay::rows`]).

@@ -9,11 +9,10 @@ use pbrl_common::wire::Weights;
 use pbrl_common::{RunningNorm, Trajectory};
 use serde::{Deserialize, Serialize};
 
-use crate::run::config::{Algo, LearnerConfig};
-use crate::rl::ppo::{Ppo, PpoState, PpoStats};
 use crate::pref::reward::TrainReward;
+use crate::rl::ppo::{Ppo, PpoState, PpoStats};
 use crate::rl::sac::{Sac, SacLosses, SacState};
-
+use crate::run::config::{Algo, LearnerConfig};
 
 pub enum Backbone {
     Sac(Box<Sac>),

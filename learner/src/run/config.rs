@@ -104,7 +104,7 @@ pub struct LearnerConfig {
 }
 
 impl LearnerConfig {
-    /// A config with every default (the flags'), for `obs_dim` x `act_dim` (tests and
+    /// A config with every default (its flags'), for `obs_dim` x `act_dim` (tests and
     /// benchmarks set what they need on top).
     pub fn new(
         run: &str,
@@ -113,15 +113,7 @@ impl LearnerConfig {
         obs_dim: usize,
         act_dim: usize,
     ) -> Self {
-        use clap::Parser;
-        #[derive(clap::Parser)]
-        struct Defaults {
-            #[command(flatten)]
-            cfg: LearnerConfig,
-        }
-        // NOTE: the defaults are clap's, so there is one of each; parsing no arguments
-        // cannot fail.
-        let mut cfg = Defaults::parse_from(["pbrl"]).cfg;
+        let mut cfg: LearnerConfig = crate::flags::defaults();
         cfg.run = run.into();
         cfg.algo = algo;
         cfg.reward = reward;
@@ -385,7 +377,10 @@ mod tests {
     #[test]
     fn every_preset_names_a_real_flag_and_a_real_field() {
         let flags = LearnerConfig::flag_ids();
-        assert!(flags.contains("sac_hidden") && flags.contains("lambda0"), "{flags:?}");
+        assert!(
+            flags.contains("sac_hidden") && flags.contains("lambda0"),
+            "{flags:?}"
+        );
         let cfg = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
         let json = serde_json::to_value(&cfg).unwrap();
         for (name, preset) in [

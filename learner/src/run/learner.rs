@@ -88,13 +88,8 @@ impl Learner {
             Algo::Sac => Pool::AtOnce,
             Algo::Ppo => Pool::AfterRollout,
         };
-        let mut reward = TrainReward::new(
-            cfg.reward,
-            &cfg.pref,
-            cfg.total_steps,
-            cfg.obs_dim,
-            pool,
-        );
+        let mut reward =
+            TrainReward::new(cfg.reward, &cfg.pref, cfg.total_steps, cfg.obs_dim, pool);
         reward.lambda_scale = cfg.sac.lambda_scale;
         let mut feedback = open_feedback(&cfg, folder.as_ref())?;
         let (p, unwritten) = match resumed {
@@ -412,7 +407,10 @@ impl Learner {
     pub fn dropped(&self, bus: &LearnerBus) -> u64 {
         bus.dropped()
             + self.curve.dropped
-            + self.feedback.as_ref().map_or(0, |f| f.counters.unknown_answers)
+            + self
+                .feedback
+                .as_ref()
+                .map_or(0, |f| f.counters.unknown_answers)
     }
 
     /// A row of the curve, when due: written at once, or once its evaluation is in.
@@ -536,7 +534,10 @@ impl Learner {
             return self.curve.flush();
         }
         if stopped {
-            tracing::info!(env_steps = self.p.env_steps, "stopping: writing a checkpoint");
+            tracing::info!(
+                env_steps = self.p.env_steps,
+                "stopping: writing a checkpoint"
+            );
         } else {
             self.curve.flush()?;
         }

@@ -10,9 +10,9 @@ use pbrl_common::Keys;
 use zenoh::Session;
 
 pub use crate::pref::reward::RewardSource;
+use crate::run::bus::LearnerBus;
 pub use crate::run::config::{Algo, LearnerConfig};
 pub use crate::run::evaluation::EVAL_SEED_BASE;
-use crate::run::bus::LearnerBus;
 use crate::run::learner::Learner;
 pub use crate::run::learner::Summary;
 

@@ -36,8 +36,8 @@ mod net;
 mod tests;
 mod train;
 
-pub use net::RewardNet;
 use net::Grads;
+pub use net::RewardNet;
 pub use train::bradley_terry_loss;
 
 /// Negative slope of the hidden layers' LeakyReLU (PyTorch's default).
@@ -115,16 +115,9 @@ pub struct RewardModelConfig {
 }
 
 impl Default for RewardModelConfig {
+    /// Every field at its flag's default.
     fn default() -> Self {
-        use clap::Parser;
-        #[derive(clap::Parser)]
-        struct Defaults {
-            #[command(flatten)]
-            model: RewardModelConfig,
-        }
-        // NOTE: the defaults are clap's, so the two cannot drift apart (as `PrefConfig`'s);
-        // parsing no arguments cannot fail.
-        Defaults::parse_from(["pbrl"]).model
+        crate::flags::defaults()
     }
 }
 

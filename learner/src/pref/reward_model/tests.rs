@@ -1,7 +1,7 @@
 //! The ensemble's golden values, gradients against autodiff, and learning tests.
 use super::*;
-use rand::Rng;
 use crate::testutil::assert_same_gradients;
+use rand::Rng;
 
 /// Draw `n` random segments of `steps` steps (test helper and bench).
 fn random_segments(
@@ -278,9 +278,8 @@ fn members_draw_their_own_orders_deterministically() {
         max_epochs: 3,
         ..small(13, &[8, 8])
     };
-    let weights = |m: &RewardModel| -> Vec<_> {
-        m.nets.iter().map(|n| export(&n.varmap).unwrap()).collect()
-    };
+    let weights =
+        |m: &RewardModel| -> Vec<_> { m.nets.iter().map(|n| export(&n.varmap).unwrap()).collect() };
     let mut a = RewardModel::new(cfg.clone(), 2, 1).unwrap();
     let mut b = RewardModel::new(cfg.clone(), 2, 1).unwrap();
     assert_eq!(a.train(&data).unwrap(), b.train(&data).unwrap());
