@@ -465,6 +465,19 @@ pub async fn train(args: TrainArgs) -> Result<()> {
     Ok(())
 }
 
+impl TrainArgs {
+    /// The world the actors simulate and the learner's resolved config for it.
+    fn configs(&self) -> Result<(pbrl_actor::WorldConfig, LearnerConfig)> {
+        let world = self.world.config()?;
+        let cfg = self.learn.learner_config(
+            self.actors,
+            episode_steps(self.learn.task, &world),
+            world_json(self.learn.task, &world)?,
+        )?;
+        Ok((world, cfg))
+    }
+}
+
 /// Router, actors and learner in this process; the learner's summary and run folder.
 ///
 /// NOTE: the learner and the actors share one Zenoh session (the router's, or the one that
@@ -472,13 +485,10 @@ pub async fn train(args: TrainArgs) -> Result<()> {
 /// stall or close. Each session that talks over a transport runs its reads on zenoh's two
 /// receive threads, shared by every session of a process, so a router and client sessions
 /// in one process can block one another (`common::bus` tells how).
-pub(crate) async fn train_in_process(args: TrainArgs) -> Result<(service::Summary, Option<PathBuf>)> {
-    let world = args.world.config()?;
-    let cfg = args.learn.learner_config(
-        args.actors,
-        episode_steps(args.learn.task, &world),
-        world_json(args.learn.task, &world)?,
-    )?;
+pub(crate) async fn train_in_process(
+    args: TrainArgs,
+) -> Result<(service::Summary, Option<PathBuf>)> {
+    let (world, cfg) = args.configs()?;
     // The embedded router on loopback, unless told to join an existing network.
     let (endpoint, session) = if args.connect.connect.is_empty() {
         let listen = match args.connect.listen.first() {
@@ -567,12 +577,7 @@ pub async fn learner(args: TrainArgs) -> Result<()> {
     if !args.learn.prepare()? {
         return Ok(());
     }
-    let world = args.world.config()?;
-    let cfg = args.learn.learner_config(
-        args.actors,
-        episode_steps(args.learn.task, &world),
-        world_json(args.learn.task, &world)?,
-    )?;
+    let (_, cfg) = args.configs()?;
     let session = args.connect.open().await?;
     let summary = service::run(cfg, session, stop_signal()).await?;
     println!(
