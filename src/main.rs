@@ -1,8 +1,8 @@
 //! `pbrl`: the command line. It parses arguments, sets up logging and calls the crates.
 
+mod bench;
 mod exp;
 mod plot;
-mod bench;
 mod train;
 
 use anyhow::Result;

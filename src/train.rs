@@ -89,7 +89,7 @@ impl LearnArgs {
             config::apply_preset(&mut cfg, &config::paper_preset(), &self.explicit)?;
         }
         if self.task == Task::Point {
-            let preset = config::point_preset(POINT_HORIZON as u32);
+            let preset = config::point_preset(POINT_HORIZON);
             config::apply_preset(&mut cfg, &preset, &self.explicit)?;
         }
         // NOTE: Decoupled PEBBLE trains on lambda_t r_task + r_hat with lambda_0 15: SAC's

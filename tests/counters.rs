@@ -18,7 +18,10 @@ use pbrl_learner::run::service::{self, Algo, RewardSource};
 fn newest_dropped(curve: &std::path::Path) -> Option<u64> {
     let text = std::fs::read_to_string(curve).ok()?;
     let mut lines = text.lines();
-    let col = lines.next()?.split(',').position(|c| c == "dropped_messages")?;
+    let col = lines
+        .next()?
+        .split(',')
+        .position(|c| c == "dropped_messages")?;
     lines.last()?.split(',').nth(col)?.parse().ok()
 }
 

@@ -182,9 +182,11 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
         }
         if reward == "pref" {
             let labels = |d: &Path| {
-                let store =
-                    pbrl_learner::pref::labels::LabelStore::open(&d.join("labels.sqlite"), "sac-pref-s5")
-                        .unwrap();
+                let store = pbrl_learner::pref::labels::LabelStore::open(
+                    &d.join("labels.sqlite"),
+                    "sac-pref-s5",
+                )
+                .unwrap();
                 let rows = store.labels_since(0).unwrap();
                 (store.counts().unwrap(), rows.len())
             };
