@@ -795,6 +795,45 @@ impl Labellers {
     }
 }
 
+/// The liveliness tokens of the people labelling at teacher `teacher` (what [`Labellers`]
+/// watches): one per person present, declared when they come and undeclared when they go.
+pub struct LabellerTokens {
+    session: Session,
+    keys: Keys,
+    teacher: String,
+    tokens: BTreeMap<String, zenoh::liveliness::LivelinessToken>,
+}
+
+impl LabellerTokens {
+    pub fn new(session: &Session, keys: &Keys, teacher: &str) -> Self {
+        Self {
+            session: session.clone(),
+            keys: keys.clone(),
+            teacher: teacher.to_string(),
+            tokens: BTreeMap::new(),
+        }
+    }
+
+    /// Hold a token for each of `present`, and none for anyone else.
+    pub async fn hold(&mut self, present: &[String]) -> Result<()> {
+        self.tokens.retain(|name, _| present.contains(name));
+        for name in present {
+            if self.tokens.contains_key(name) {
+                continue;
+            }
+            let key = self.keys.labeller(&self.teacher, name);
+            let token = self
+                .session
+                .liveliness()
+                .declare_token(key)
+                .await
+                .map_err(|e| anyhow!("declaring labeller {name:?}'s liveliness: {e}"))?;
+            self.tokens.insert(name.clone(), token);
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
