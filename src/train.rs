@@ -210,20 +210,16 @@ pub struct HumanArgs {
     /// Human teacher: record a scripted teacher's answer beside each person's.
     #[arg(long, value_enum)]
     pub shadow: Option<Shadow>,
-    /// Human teacher: the queue's file (default: `teacher.sqlite` in the run folder for
-    /// `train`, `teacher-<run>.sqlite` here for `teacher`).
-    #[arg(long)]
-    pub teacher_state: Option<PathBuf>,
 }
 
 impl HumanArgs {
-    fn config(&self, state: PathBuf, seed: u64) -> HumanConfig {
+    fn config(&self, seed: u64) -> HumanConfig {
         HumanConfig {
             undo_s: self.undo_s,
             repeat_share: self.repeat_share,
             shadow: self.shadow.is_some(),
             seed,
-            ..HumanConfig::new(&self.teacher_state.clone().unwrap_or(state))
+            ..HumanConfig::default()
         }
     }
 
@@ -253,6 +249,12 @@ pub struct TeacherArgs {
     /// The teacher's id on the network (default `<kind>-<seed>`).
     #[arg(long)]
     pub teacher_id: Option<String>,
+    /// The teacher's file: every answer it gives, kept until the learner has stored it
+    /// (a teacher restarted on it sends those again, never judging a query twice), and
+    /// people's queue (default: `teacher.sqlite` in the run folder for `train`,
+    /// `teacher-<run>.sqlite` here for `teacher`).
+    #[arg(long)]
+    pub teacher_state: Option<PathBuf>,
     #[command(flatten)]
     pub human: HumanArgs,
 }
@@ -276,7 +278,8 @@ impl TeacherArgs {
     }
 
     /// Run the teacher until `shutdown`: scripted, or the human teacher's page (feeding
-    /// only: a person watches the episodes) with its queue in `state`.
+    /// only: a person watches the episodes), with its outbox (and people's queue) in
+    /// `state` unless `--teacher-state` says where.
     #[allow(clippy::too_many_arguments)]
     async fn run(
         &self,
@@ -288,7 +291,8 @@ impl TeacherArgs {
         session: zenoh::Session,
         shutdown: impl std::future::Future<Output = ()>,
     ) -> Result<TeacherSummary> {
-        let (cfg, scripted) = self.configs(run, task, seed);
+        let (mut cfg, scripted) = self.configs(run, task, seed);
+        cfg.state = self.teacher_state.clone().unwrap_or(state);
         match self.kind {
             Who::Scripted(_) => teaching::run(cfg, scripted, session, shutdown).await,
             Who::Human => {
@@ -299,7 +303,7 @@ impl TeacherArgs {
                 }
                 teaching::run_human(
                     cfg,
-                    self.human.config(state, seed),
+                    self.human.config(seed),
                     self.human.http(),
                     world.clone(),
                     session,
@@ -535,7 +539,8 @@ pub(crate) async fn train_in_process(
             },
         )));
     }
-    // The scripted teacher, on the same session, when the reward is learnt.
+    // The teacher, on the same session, when the reward is learnt (its outbox in the run
+    // folder).
     let teacher = (cfg.reward.learnt() && !args.external_teacher).then(|| {
         let mut rx = rx.clone();
         let teacher = args.teacher.clone();

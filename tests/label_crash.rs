@@ -13,7 +13,7 @@ use pbrl_common::wire::{Answer, Body, Query};
 use pbrl_common::Keys;
 use pbrl_learner::pref::labels::LabelStore;
 use pbrl_teacher::scripted::{Scripted, ScriptedConfig, TeacherKind};
-use pbrl_teacher::service::Teacher;
+use pbrl_teacher::service::Judge;
 
 mod support;
 

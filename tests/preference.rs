@@ -305,7 +305,7 @@ async fn a_teacher_killed_and_restarted_loses_nothing_and_training_goes_on() {
 /// the way to the learner.
 struct Unscrambled(pbrl_teacher::scripted::Scripted);
 
-impl pbrl_teacher::service::Teacher for Unscrambled {
+impl pbrl_teacher::service::Judge for Unscrambled {
     fn kind(&self) -> String {
         "oracle".into()
     }
@@ -355,7 +355,7 @@ async fn sync_run(
     session: &zenoh::Session,
     run: &str,
     actor_run: &str,
-    teacher: impl pbrl_teacher::service::Teacher + 'static,
+    teacher: impl pbrl_teacher::service::Judge + 'static,
 ) -> service::Summary {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = pref_point(run, 3_000, dir.path());

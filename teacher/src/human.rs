@@ -2,12 +2,13 @@
 //! any client of the HTTP API in [`crate::web`]), kept on disk.
 //!
 //! A label is a person's time, so the desk writes each query it receives and each answer a
-//! person gives to its own SQLite file (WAL, synced at every commit) before anything else
-//! sees it, and keeps an answer until the learner acknowledges that its label store holds
-//! it. A teacher restarted finds its queue, its answers waiting for the learner and its
-//! repeats as they were.
+//! person gives to the teacher's SQLite file (WAL, synced at every commit) before anything
+//! else sees it. An answer stays on the desk while it can be undone; then the desk hands it
+//! to the teacher's [`Outbox`] (in the same file), which sends it until the learner
+//! acknowledges it, as it does a scripted teacher's. A teacher restarted finds its queue,
+//! the answers in their undo window and its repeats as they were.
 //!
-//! - An answer can be undone for `undo_s` seconds; then it goes to the learner.
+//! - An answer can be undone for `undo_s` seconds; then it goes to the outbox.
 //! - Each query is leased to the person it is shown to for `lease_s` seconds, so two people
 //!   are not shown the same pair; a person may hold two (the page fetches the next pair
 //!   while the person judges the current one).
@@ -31,13 +32,13 @@ use rand_chacha::ChaCha8Rng;
 use rusqlite::{params, Connection};
 use serde::{Deserialize, Serialize};
 
+use crate::outbox::{self, Outbox};
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
+use crate::teacher::Teacher;
 
-/// The desk's settings.
+/// The desk's settings (its file is the teacher's: `TeacherConfig::state`).
 #[derive(Clone, Debug)]
 pub struct HumanConfig {
-    /// The desk's file (`:memory:` for none: answers then live only as long as the process).
-    pub state: std::path::PathBuf,
     /// Seconds an answer can be undone before it goes to the learner.
     pub undo_s: u64,
     /// Seconds a query shown to a person stays theirs.
@@ -50,10 +51,9 @@ pub struct HumanConfig {
     pub seed: u64,
 }
 
-impl HumanConfig {
-    pub fn new(state: &Path) -> Self {
+impl Default for HumanConfig {
+    fn default() -> Self {
         Self {
-            state: state.to_path_buf(),
             undo_s: 10,
             lease_s: 300,
             repeat_share: 0.1,
@@ -61,7 +61,9 @@ impl HumanConfig {
             seed: 0,
         }
     }
+}
 
+impl HumanConfig {
     pub fn validate(&self) -> Result<()> {
         if !(0.0..=1.0).contains(&self.repeat_share) {
             bail!("repeat_share is {}: must be in [0, 1]", self.repeat_share);
@@ -111,15 +113,12 @@ pub struct Shown {
     pub repeat: bool,
 }
 
-/// An answer given and not yet acknowledged by the learner.
+/// An answer a person gave that is still on the desk (in its undo window, or past it and
+/// not yet handed to the outbox).
 #[derive(Clone, Debug)]
 struct Given {
     answer: Answer,
     given_at_ms: u64,
-    /// Past the undo window: goes to the learner.
-    settled: bool,
-    /// Sent to the learner at (ms; 0: not yet).
-    sent_at_ms: u64,
 }
 
 /// A query to ask a person again.
@@ -144,19 +143,19 @@ struct Person {
     undone: Option<(u64, bool)>,
 }
 
-/// The queue, the answers waiting for the learner and the repeats.
+/// The queue, the answers that can still be undone and the repeats.
 pub struct Desk {
     cfg: HumanConfig,
     run: String,
     teacher_id: String,
     db: Connection,
-    /// Every query still needed: open, answered and not acknowledged, or to be repeated.
+    /// Every query still needed: open, answered and still on the desk, or to be repeated.
     queries: BTreeMap<u64, Arc<Query>>,
     /// Queries answered (by anyone), so not open.
     answered: std::collections::BTreeSet<u64>,
     leases: HashMap<u64, (String, u64)>,
-    /// Answers by (query, labeller, repeat).
-    given: BTreeMap<(u64, String, bool), Given>,
+    /// Answers still on the desk.
+    given: BTreeMap<outbox::Key, Given>,
     checks: Vec<Check>,
     people: HashMap<String, Person>,
     oracle: Scripted,
@@ -220,20 +219,12 @@ fn now_ms() -> u64 {
 }
 
 impl Desk {
-    /// Open the desk's file (creating it) and read back what it holds.
-    pub fn open(cfg: HumanConfig, run: &str, teacher_id: &str) -> Result<Self> {
+    /// Open the desk in the teacher's file `path` (creating it) and read back what it holds.
+    pub fn open(cfg: HumanConfig, path: &Path, run: &str, teacher_id: &str) -> Result<Self> {
         cfg.validate()?;
-        let path = cfg.state.clone();
-        let db = Connection::open(&path)
-            .with_context(|| format!("opening the teacher's store {}", path.display()))?;
-        let context = || format!("setting up the teacher's store {}", path.display());
-        if path.as_os_str() != ":memory:" {
-            db.pragma_update(None, "journal_mode", "WAL")
-                .with_context(context)?;
-        }
-        db.pragma_update(None, "synchronous", "FULL")
-            .with_context(context)?;
-        db.execute_batch(CREATE).with_context(context)?;
+        let db = outbox::open_durable(path, "teacher's queue")?;
+        db.execute_batch(CREATE)
+            .with_context(|| format!("setting up the teacher's queue {}", path.display()))?;
         let mut desk = Self {
             run: run.into(),
             teacher_id: teacher_id.into(),
@@ -251,7 +242,7 @@ impl Desk {
             cfg,
         };
         desk.load()
-            .with_context(|| format!("reading the teacher's store {}", path.display()))?;
+            .with_context(|| format!("reading the teacher's queue {}", path.display()))?;
         Ok(desk)
     }
 
@@ -276,8 +267,6 @@ impl Desk {
                 Given {
                     answer: a,
                     given_at_ms: at as u64,
-                    settled: false,
-                    sent_at_ms: 0,
                 },
             );
         }
@@ -308,7 +297,7 @@ impl Desk {
         if !self.queries.is_empty() || !self.given.is_empty() {
             tracing::info!(
                 open = self.open_queries(),
-                unacknowledged = self.given.len(),
+                on_the_desk = self.given.len(),
                 repeats = self.checks.len(),
                 "the teacher's queue is back"
             );
@@ -324,26 +313,15 @@ impl Desk {
             .count()
     }
 
-    /// A query from the learner: queued (written to disk first), unless answered already;
-    /// an answer given and settled is returned to be sent again (the learner has not stored
-    /// it).
-    pub fn receive(&mut self, q: Query) -> Result<Option<Answer>> {
-        if self.answered.contains(&q.id) {
-            let again = self
-                .given
-                .iter_mut()
-                .find(|((id, _, repeat), g)| *id == q.id && !repeat && g.settled)
-                .map(|(_, g)| {
-                    g.sent_at_ms = now_ms();
-                    g.answer.clone()
-                });
-            return Ok(again);
-        }
-        if self.queries.contains_key(&q.id) {
-            return Ok(None);
+    /// A query from the learner: queued (written to disk first), unless it is queued,
+    /// answered or expired already. (A query asked again after its answer left the desk is
+    /// answered by the outbox and never comes here.)
+    pub fn queue(&mut self, q: Query) -> Result<()> {
+        if self.answered.contains(&q.id) || self.queries.contains_key(&q.id) {
+            return Ok(());
         }
         if q.expires_at_ms != 0 && q.expires_at_ms <= now_ms() {
-            return Ok(None);
+            return Ok(());
         }
         let bytes = bincode::serde::encode_to_vec(&q, code())?;
         self.db
@@ -353,37 +331,41 @@ impl Desk {
             )
             .with_context(|| format!("queueing query {}", q.id))?;
         self.queries.insert(q.id, Arc::new(q));
-        Ok(None)
+        Ok(())
     }
 
-    /// The learner stored these answers: forget them (and queries nobody needs now).
-    pub fn acknowledged(&mut self, queries: &[u64], repeats: &[(u64, String)]) -> Result<u64> {
-        let mut n = 0;
-        let keys: Vec<(u64, String, bool)> = self
+    /// Answers past their undo window: kept in `outbox` (committed there first), then
+    /// taken off the desk; returned to send. One the outbox holds already (the desk was
+    /// stopped between the two) is only taken off.
+    pub fn hand_over(&mut self, outbox: &mut Outbox) -> Result<Vec<Answer>> {
+        let now = now_ms();
+        let undo_ms = self.cfg.undo_s * 1000;
+        let settled: Vec<outbox::Key> = self
             .given
-            .keys()
-            .filter(|(q, l, repeat)| {
-                if *repeat {
-                    repeats.iter().any(|(rq, rl)| rq == q && rl == l)
-                } else {
-                    queries.contains(q)
-                }
-            })
-            .cloned()
+            .iter()
+            .filter(|(_, g)| now >= g.given_at_ms + undo_ms)
+            .map(|(k, _)| k.clone())
             .collect();
-        for k in keys {
-            // NOTE: only a settled answer was sent; an acknowledgement cannot come first.
-            if self.given.get(&k).is_some_and(|g| g.settled) {
-                self.db.execute(
+        let mut out = Vec::new();
+        for k in settled {
+            let answer = self.given[&k].answer.clone();
+            // NOTE: the desk keeps a query while an answer to it is on the desk.
+            let asked_at_ms = self.queries.get(&k.0).map_or(0, |q| q.asked_at_ms);
+            if outbox.keep(&answer, asked_at_ms)? {
+                out.push(answer);
+            }
+            // NOTE: only once the outbox has committed it: a person's answer is never on
+            // neither disk.
+            self.db
+                .execute(
                     "DELETE FROM answers WHERE query = ?1 AND labeller = ?2 AND repeat = ?3",
                     params![k.0 as i64, k.1, k.2],
-                )?;
-                self.given.remove(&k);
-                n += 1;
-                self.forget_if_done(k.0)?;
-            }
+                )
+                .with_context(|| format!("taking the answer to query {} off the desk", k.0))?;
+            self.given.remove(&k);
+            self.forget_if_done(k.0)?;
         }
-        Ok(n)
+        Ok(out)
     }
 
     fn forget_if_done(&mut self, query: u64) -> Result<()> {
@@ -398,21 +380,9 @@ impl Desk {
         Ok(())
     }
 
-    /// Answers past their undo window that the learner has not acknowledged and that were
-    /// not sent within `resend_ms`: to send now. Expired open queries leave the queue.
-    pub fn due(&mut self, resend_ms: u64) -> Result<Vec<Answer>> {
+    /// Open queries past their expiry leave the queue.
+    pub fn expire(&mut self) -> Result<()> {
         let now = now_ms();
-        let undo_ms = self.cfg.undo_s * 1000;
-        let mut out = Vec::new();
-        for g in self.given.values_mut() {
-            if !g.settled && now >= g.given_at_ms + undo_ms {
-                g.settled = true;
-            }
-            if g.settled && (g.sent_at_ms == 0 || now >= g.sent_at_ms + resend_ms) {
-                g.sent_at_ms = now;
-                out.push(g.answer.clone());
-            }
-        }
         let expired: Vec<u64> = self
             .queries
             .values()
@@ -429,7 +399,7 @@ impl Desk {
             self.queries.remove(&id);
             self.leases.remove(&id);
         }
-        Ok(out)
+        Ok(())
     }
 
     fn swapped(&self, query: u64, labeller: &str, repeat: bool) -> bool {
@@ -524,26 +494,75 @@ impl Desk {
         replays: [u32; 2],
     ) -> Result<u64, Refused> {
         check_name(labeller)?;
+        let check = self.answerable(labeller, query)?;
+        let repeat = check.is_some();
+        let a = self.person_answer(labeller, query, repeat, choice, took_ms, replays);
+        let now = now_ms();
+        self.store(&a, now)
+            .map_err(|e| Refused::Failed(format!("storing the answer failed: {e:#}")))?;
+        if let Some(k) = check {
+            self.checks.remove(k);
+        } else {
+            self.answered.insert(query);
+            self.leases.remove(&query);
+        }
+        let key = outbox::key(&a);
+        self.given.insert(
+            key,
+            Given {
+                answer: a,
+                given_at_ms: now,
+            },
+        );
+        let person = self.people.entry(labeller.to_string()).or_default();
+        person.answered += 1;
+        person.total += 1;
+        person.undone = None;
+        let answered = person.total;
+        if !repeat && choice != Choice::Skip {
+            self.plan_repeats(query, labeller, answered)
+                .map_err(|e| Refused::Failed(format!("planning a repeat failed: {e:#}")))?;
+        }
+        Ok(answered)
+    }
+
+    /// Whether `labeller` may answer `query` now: as its repeat (the index of the check),
+    /// or as its first answer (None).
+    fn answerable(&self, labeller: &str, query: u64) -> Result<Option<usize>, Refused> {
         let check = self
             .checks
             .iter()
             .position(|c| c.query == query && c.labeller == labeller);
-        let repeat = check.is_some();
-        if !repeat {
-            if self.answered.contains(&query) {
-                let mine = self
-                    .given
-                    .contains_key(&(query, labeller.to_string(), false));
-                return Err(if mine {
-                    Refused::Answered(query)
-                } else {
-                    Refused::AnsweredByOther(query)
-                });
-            }
-            if !self.queries.contains_key(&query) {
-                return Err(Refused::Unknown(query));
-            }
+        if check.is_some() {
+            return Ok(check);
         }
+        if self.answered.contains(&query) {
+            let mine = self
+                .given
+                .contains_key(&(query, labeller.to_string(), false));
+            return Err(if mine {
+                Refused::Answered(query)
+            } else {
+                Refused::AnsweredByOther(query)
+            });
+        }
+        if !self.queries.contains_key(&query) {
+            return Err(Refused::Unknown(query));
+        }
+        Ok(None)
+    }
+
+    /// The answer a choice on the pair as shown means (sides put back, the oracle's shadow
+    /// beside it when asked for).
+    fn person_answer(
+        &mut self,
+        labeller: &str,
+        query: u64,
+        repeat: bool,
+        choice: Choice,
+        took_ms: u64,
+        replays: [u32; 2],
+    ) -> Answer {
         let q = self.queries[&query].clone();
         let swapped = self.swapped(query, labeller, repeat);
         let preference = match (choice, swapped) {
@@ -561,7 +580,7 @@ impl Desk {
             .cfg
             .shadow
             .then(|| self.oracle.answer(&q.first.truth, &q.second.truth));
-        let a = Answer {
+        Answer {
             query,
             preference,
             teacher: "human".into(),
@@ -571,63 +590,40 @@ impl Desk {
             replays,
             shadow,
             repeat,
-        };
-        let now = now_ms();
-        let stored = (|| -> Result<()> {
-            let tx = self.db.unchecked_transaction()?;
+        }
+    }
+
+    /// Write a person's answer to the desk in one transaction: the answer, its lease or
+    /// its check gone, their count one up.
+    fn store(&self, a: &Answer, now: u64) -> Result<()> {
+        let (query, labeller) = (a.query as i64, a.labeller.as_str());
+        let tx = self.db.unchecked_transaction()?;
+        tx.execute(
+            "INSERT INTO answers (query, labeller, repeat, message, given_at_ms)
+             VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![
+                query,
+                labeller,
+                a.repeat,
+                bincode::serde::encode_to_vec(a, code())?,
+                now as i64
+            ],
+        )?;
+        if a.repeat {
             tx.execute(
-                "INSERT INTO answers (query, labeller, repeat, message, given_at_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
-                params![
-                    query as i64,
-                    labeller,
-                    repeat,
-                    bincode::serde::encode_to_vec(&a, code())?,
-                    now as i64
-                ],
+                "DELETE FROM checks WHERE query = ?1 AND labeller = ?2",
+                params![query, labeller],
             )?;
-            if repeat {
-                tx.execute(
-                    "DELETE FROM checks WHERE query = ?1 AND labeller = ?2",
-                    params![query as i64, labeller],
-                )?;
-            } else {
-                tx.execute("DELETE FROM leases WHERE query = ?1", [query as i64])?;
-            }
-            tx.execute(
-                "INSERT INTO labellers (name, answered) VALUES (?1, 1)
-                 ON CONFLICT (name) DO UPDATE SET answered = answered + 1",
-                [labeller],
-            )?;
-            tx.commit()?;
-            Ok(())
-        })();
-        stored.map_err(|e| Refused::Failed(format!("storing the answer failed: {e:#}")))?;
-        if let Some(k) = check {
-            self.checks.remove(k);
         } else {
-            self.answered.insert(query);
-            self.leases.remove(&query);
+            tx.execute("DELETE FROM leases WHERE query = ?1", [query])?;
         }
-        self.given.insert(
-            (query, labeller.to_string(), repeat),
-            Given {
-                answer: a,
-                given_at_ms: now,
-                settled: false,
-                sent_at_ms: 0,
-            },
-        );
-        let person = self.people.entry(labeller.to_string()).or_default();
-        person.answered += 1;
-        person.total += 1;
-        person.undone = None;
-        let answered = person.total;
-        if !repeat && choice != Choice::Skip {
-            self.plan_repeats(query, labeller, answered)
-                .map_err(|e| Refused::Failed(format!("planning a repeat failed: {e:#}")))?;
-        }
-        Ok(answered)
+        tx.execute(
+            "INSERT INTO labellers (name, answered) VALUES (?1, 1)
+             ON CONFLICT (name) DO UPDATE SET answered = answered + 1",
+            [labeller],
+        )?;
+        tx.commit()?;
+        Ok(())
     }
 
     fn plan_repeats(&mut self, query: u64, labeller: &str, answered: u64) -> Result<()> {
@@ -666,7 +662,7 @@ impl Desk {
         let newest = self
             .given
             .iter()
-            .filter(|((_, l, _), g)| l == labeller && !g.settled)
+            .filter(|((_, l, _), _)| l == labeller)
             .max_by_key(|(_, g)| g.given_at_ms)
             .map(|(k, _)| k.clone());
         let Some(k) = newest else {
@@ -730,29 +726,24 @@ impl Desk {
         self.status = Some((s, now_ms()));
     }
 
-    /// What a page shows: this person's answers since the desk started, the open queries,
-    /// the learner's budget left, whether it trains and waits for labels, who labels.
-    pub fn status(&self, labeller: Option<&str>) -> serde_json::Value {
+    /// The learner's status if heard in the last 5 seconds, and whether its env steps
+    /// grew at the last one (it trains).
+    pub fn learner(&self) -> Option<(&LearnerStatus, bool)> {
         let now = now_ms();
-        let fresh = self
-            .status
+        self.status
             .as_ref()
             .filter(|(_, at)| now < at + 5_000)
-            .map(|(s, _)| s);
-        let mut people = self.present();
-        people.sort();
-        serde_json::json!({
-            "protocol": crate::web::PROTOCOL,
-            "run": self.run,
-            "teacher": self.teacher_id,
-            "open": self.open_queries(),
-            "answered": labeller.and_then(|l| self.people.get(l)).map_or(0, |p| p.answered),
-            "budget_left": fresh.map(|s| s.budget_left),
-            "training": fresh.is_some() && self.training,
-            "env_steps": fresh.map(|s| s.env_steps),
-            "waiting": fresh.is_some_and(|s| s.waiting),
-            "labellers": people,
-        })
+            .map(|(s, _)| (s, self.training))
+    }
+
+    /// What `labeller` has answered since the desk started.
+    pub fn answered_by(&self, labeller: &str) -> u64 {
+        self.people.get(labeller).map_or(0, |p| p.answered)
+    }
+
+    /// The run and this teacher's id.
+    pub fn names(&self) -> (&str, &str) {
+        (&self.run, &self.teacher_id)
     }
 
     /// People seen in the last 30 seconds (their liveliness tokens).
@@ -765,15 +756,42 @@ impl Desk {
             .collect()
     }
 
-    /// Answers not yet acknowledged by the learner.
-    pub fn unacknowledged(&self) -> usize {
+    /// Answers still on the desk (in their undo window, or not yet handed to the outbox).
+    pub fn on_the_desk(&self) -> usize {
         self.given.len()
+    }
+}
+
+/// People's desk as a teacher: a query is queued for them; their answers go to the outbox
+/// once they can no longer be undone.
+impl Teacher for Desk {
+    fn kind(&self) -> String {
+        "human".into()
+    }
+
+    fn receive(&mut self, q: Query, _outbox: &mut Outbox) -> Result<Option<Answer>> {
+        self.queue(q)?;
+        Ok(None)
+    }
+
+    fn due(&mut self, outbox: &mut Outbox) -> Result<Vec<Answer>> {
+        self.expire()?;
+        self.hand_over(outbox)
+    }
+
+    fn learner_status(&mut self, status: LearnerStatus) {
+        Desk::learner_status(self, status)
+    }
+
+    fn present(&self) -> Vec<String> {
+        Desk::present(self)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::teacher::Served;
     use pbrl_common::wire::Shown as Side;
 
     fn query(id: u64, first: f32, second: f32) -> Query {
@@ -796,11 +814,41 @@ mod tests {
         }
     }
 
-    fn desk(path: &Path, f: impl FnOnce(&mut HumanConfig)) -> Desk {
-        let mut cfg = HumanConfig::new(path);
-        cfg.repeat_share = 0.0;
+    /// The desk served as the teacher loop serves it: with its outbox, in the same file.
+    fn desk(path: &Path, f: impl FnOnce(&mut HumanConfig)) -> Served<Desk> {
+        let mut cfg = HumanConfig {
+            repeat_share: 0.0,
+            ..HumanConfig::default()
+        };
         f(&mut cfg);
-        Desk::open(cfg, "run", "human-0").unwrap()
+        let desk = Desk::open(cfg, path, "run", "human-0").unwrap();
+        Served::new(desk, Outbox::open(path, "human-0").unwrap())
+    }
+
+    // NOTE: the tests reach the desk's own state through the loop's wrapper.
+    impl std::ops::Deref for Served<Desk> {
+        type Target = Desk;
+        fn deref(&self) -> &Desk {
+            &self.teacher
+        }
+    }
+
+    impl std::ops::DerefMut for Served<Desk> {
+        fn deref_mut(&mut self) -> &mut Desk {
+            &mut self.teacher
+        }
+    }
+
+    fn ms(ms: u64) -> std::time::Duration {
+        std::time::Duration::from_millis(ms)
+    }
+
+    fn ack(queries: &[u64]) -> pbrl_common::wire::AnswerAck {
+        pbrl_common::wire::AnswerAck {
+            teacher_id: "human-0".into(),
+            queries: queries.to_vec(),
+            repeats: Vec::new(),
+        }
     }
 
     /// The choice that means `p` on the pair as shown.
@@ -871,7 +919,7 @@ mod tests {
         assert_eq!(d.undo("ann"), Ok(a.query.id));
         assert_eq!(d.undo("ann"), Err(Refused::NothingToUndo));
         assert_eq!(d.next("ann", None).unwrap().unwrap().query.id, a.query.id);
-        assert!(d.due(1000).unwrap().is_empty());
+        assert!(d.due(ms(1000)).unwrap().is_empty());
         assert!(matches!(d.next("a/b", None), Err(Refused::Invalid(_))));
     }
 
@@ -900,27 +948,28 @@ mod tests {
         // The pair on bob's page stays his across the restart.
         assert!(d.next("ann", None).unwrap().is_none());
         assert!(d.next("bob", None).unwrap().is_some());
-        let sent = d.due(60_000).unwrap();
+        let sent = d.due(ms(60_000)).unwrap();
         let mut ids: Vec<u64> = sent.iter().map(|a| a.query).collect();
         ids.sort();
         assert_eq!(ids, vec![q1, q2]);
         // Sent once; again only after the resend interval.
-        assert!(d.due(60_000).unwrap().is_empty());
+        assert!(d.due(ms(60_000)).unwrap().is_empty());
         // The learner asks q1 again (it did not hear): the same answer, not a new judgement.
         let again = d.receive(query(q1, 1.0, 0.0)).unwrap().unwrap();
         assert_eq!(again.query, q1);
-        assert_eq!(d.acknowledged(&[q1, q2], &[]).unwrap(), 2);
+        assert_eq!(d.acknowledged(&ack(&[q1, q2])).unwrap(), 2);
         assert_eq!(d.unacknowledged(), 0);
         drop(d);
         let mut d = desk(&path, |c| c.undo_s = 0);
-        assert!(d.due(0).unwrap().is_empty());
+        assert!(d.due(ms(0)).unwrap().is_empty());
         assert_eq!(d.open_queries(), 1);
     }
 
     #[test]
     fn a_share_of_answers_is_asked_again_of_the_same_person_and_of_another() {
         let dir = tempfile::tempdir().unwrap();
-        let mut d = desk(&dir.path().join("t.sqlite"), |c| {
+        let path = dir.path().join("t.sqlite");
+        let mut d = desk(&path, |c| {
             c.repeat_share = 1.0;
             c.undo_s = 0;
         });
@@ -946,12 +995,11 @@ mod tests {
         // The first answer reaches the learner; a restart keeps the query answered (not
         // open again) while its repeat waits.
         assert!(d
-            .due(60_000)
+            .due(ms(60_000))
             .unwrap()
             .iter()
             .any(|a| a.query == first && !a.repeat));
-        assert_eq!(d.acknowledged(&[first], &[]).unwrap(), 1);
-        let path = d.cfg.state.clone();
+        assert_eq!(d.acknowledged(&ack(&[first])).unwrap(), 1);
         drop(d);
         let mut d = desk(&path, |c| {
             c.repeat_share = 1.0;
@@ -962,7 +1010,7 @@ mod tests {
         assert!(r.repeat && r.query.id == first);
         d.answer("ann", first, Choice::Equal, 10, [1, 1]).unwrap();
         let repeats: Vec<(String, bool)> = d
-            .due(60_000)
+            .due(ms(60_000))
             .unwrap()
             .into_iter()
             .filter(|a| a.query == first)

@@ -33,6 +33,7 @@ use pbrl_common::wire::Shown as ShownTrajectory;
 use serde::Deserialize;
 
 use crate::human::{Choice, Desk, Refused};
+use crate::teacher::lock;
 
 /// The API's version.
 pub const PROTOCOL: u32 = 1;
@@ -146,10 +147,6 @@ fn authorised(web: &Web, headers: &HeaderMap) -> Result<(), Bad> {
     }
 }
 
-pub(crate) fn lock(desk: &Mutex<Desk>) -> std::sync::MutexGuard<'_, Desk> {
-    desk.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 /// The router of the page and the API (every API call checked for the token first).
 pub fn router(web: Web) -> Router {
     let api = Router::new()
@@ -184,7 +181,29 @@ struct Who {
 }
 
 async fn status(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response {
-    Json(lock(&web.desk).status(who.labeller.as_deref())).into_response()
+    Json(status_json(&lock(&web.desk), who.labeller.as_deref())).into_response()
+}
+
+/// What a page shows: this person's answers since the desk started, the open queries,
+/// the learner's budget left, whether it trains and waits for labels, who labels.
+fn status_json(desk: &Desk, labeller: Option<&str>) -> serde_json::Value {
+    let learner = desk.learner();
+    let fresh = learner.map(|(s, _)| s);
+    let mut people = desk.present();
+    people.sort();
+    let (run, teacher) = desk.names();
+    serde_json::json!({
+        "protocol": PROTOCOL,
+        "run": run,
+        "teacher": teacher,
+        "open": desk.open_queries(),
+        "answered": labeller.map_or(0, |l| desk.answered_by(l)),
+        "budget_left": fresh.map(|s| s.budget_left),
+        "training": learner.is_some_and(|(_, training)| training),
+        "env_steps": fresh.map(|s| s.env_steps),
+        "waiting": fresh.is_some_and(|s| s.waiting),
+        "labellers": people,
+    })
 }
 
 /// Replay a query's side and check that the replay is the episode the learner sent.
