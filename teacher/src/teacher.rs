@@ -84,7 +84,11 @@ impl<J: Judge> Teacher for AtOnce<J> {
         let preference = self.judge.judge(&q);
         let took_ms = start.elapsed().as_millis() as u64;
         let answer = Answer::scripted(q.id, preference, &self.judge.kind(), &self.id, took_ms);
-        tracing::debug!(query = q.id, preference = preference.name(), "judged");
+        tracing::debug!(
+            query = q.id,
+            preference = preference.name(),
+            "judged a query"
+        );
         outbox.keep(&answer, q.asked_at_ms)?;
         Ok(Some(answer))
     }
