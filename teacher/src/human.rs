@@ -789,12 +789,13 @@ impl Teacher for Desk {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::teacher::Served;
     use pbrl_common::wire::Shown as Side;
 
-    fn query(id: u64, first: f32, second: f32) -> Query {
+    /// A query whose sides' truths are `first` and `second` at every step.
+    pub(crate) fn query(id: u64, first: f32, second: f32) -> Query {
         let side = |k: u64, r: f32| Side {
             id: 2 * id + k,
             seed: id,

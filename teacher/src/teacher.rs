@@ -208,7 +208,6 @@ impl<T: Teacher> Served<T> {
 mod tests {
     use super::*;
     use crate::scripted::{ScriptedConfig, TeacherKind};
-    use pbrl_common::wire::Shown;
 
     /// A judge that counts its judgements.
     struct Counting(Scripted, u64);
@@ -224,24 +223,9 @@ mod tests {
         }
     }
 
+    /// A query whose first side's truth is `id` and second's 1.5 (the desk's test query).
     fn query(id: u64) -> Query {
-        let side = |k: u64, r: f32| Shown {
-            id: 2 * id + k,
-            seed: id,
-            policy_version: 1,
-            act_dim: 1,
-            actions: vec![0.0; 2],
-            truth: vec![r, r],
-            replay: None,
-        };
-        Query {
-            id,
-            session: 1,
-            asked_at_ms: 1,
-            expires_at_ms: 0,
-            first: side(0, id as f32),
-            second: side(1, 1.5),
-        }
+        crate::human::tests::query(id, id as f32, 1.5)
     }
 
     fn served(path: &std::path::Path) -> Served<AtOnce<Counting>> {
