@@ -13,9 +13,7 @@ use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
 use pbrl_common::wire::{Body, EvalRequest, EvalResult, Stop, Tensor, TrajectoryMsg, Weights};
 use pbrl_common::{Keys, Outcome, StepRewards, Trajectory};
-use pbrl_learner::rl::ppo::PpoConfig;
-use pbrl_learner::rl::sac::SacConfig;
-use pbrl_learner::run::service::{self, Algo, LearnerConfig};
+use pbrl_learner::run::service::{self, LearnerConfig};
 use support::{bad_payloads, put_all};
 
 fn trajectory(nan: bool, short: bool) -> Body {
@@ -74,19 +72,8 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
     let run = "foreign-test";
     let keys = Keys::new(run).unwrap();
     let cfg = LearnerConfig {
-        sac: SacConfig {
-            hidden: vec![16, 16],
-            batch: 16,
-            random_steps: 300,
-            update_every: 10,
-            ..SacConfig::default()
-        },
-        ppo: PpoConfig::default(),
         publish_every: 10,
-        log_every: 10_000,
-        eval_episodes: 4,
-        eval_sampled: true,
-        ..support::point_learner(run, Algo::Sac, 100_000)
+        ..support::bus_learner(run, 100_000, 300, 10)
     };
     let learner = tokio::spawn(service::run(cfg, session.clone(), std::future::pending()));
     let mut actors = Vec::new();
@@ -210,18 +197,7 @@ async fn malformed_messages_on_every_key_while_a_run_trains_are_dropped_and_it_g
     );
     let after_spray = watch.newest().map_or(0, |w| w.version);
 
-    let summary = tokio::time::timeout(Duration::from_secs(300), learner)
-        .await
-        .expect("the run ends")
-        .unwrap()
-        .unwrap();
-    for a in actors {
-        tokio::time::timeout(Duration::from_secs(30), a)
-            .await
-            .unwrap()
-            .unwrap()
-            .unwrap();
-    }
+    let summary = support::run_ends(learner, actors, 300).await;
     assert!(summary.env_steps >= 100_000);
     assert_eq!(
         summary.dropped_messages, to_learner,

@@ -33,29 +33,7 @@ async fn a_learner_killed_with_queries_in_flight_gets_every_answer_once_after_re
     let out = dir.path().join("run");
     let log = dir.path().join("train.log");
     let run = "crash-test";
-    let args: Vec<String> = [
-        "train",
-        "--task=point",
-        "--reward=pref",
-        "--external-teacher",
-        "--actors=1",
-        "--steps=100000",
-        "--eval-episodes=0",
-        "--quiet",
-        "--log-every=1000",
-        "--checkpoint-every=600",
-        "--unsup-steps=600",
-        "--queries-per-session=10",
-        "--query-retry-s=1",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain([
-        format!("--connect={endpoint}"),
-        format!("--out={}", out.display()),
-        format!("--run={run}"),
-    ])
-    .collect();
+    let args = support::crash_learner_args(&endpoint, &out, run, &[]);
     let keys = Keys::new(run).unwrap();
     let mut queries = Inbox::queries(&router, &keys).await.unwrap();
     let mut acks = Inbox::answer_acks(&router, &keys, "slow-0").await.unwrap();

@@ -1043,10 +1043,7 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     let r = api.answer("kim", b, "skip");
     assert_eq!(r.status, 200, "{}", r.text());
     support::signal(&teacher.child, "-KILL");
-    let killed_at_ms = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_millis() as u64;
+    let killed_at_ms = pbrl_common::wire::now_ms();
     teacher.child.wait().unwrap();
 
     // Who gave each answer and what it may be stored as.

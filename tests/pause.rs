@@ -20,9 +20,7 @@ use pbrl_actor::WorldConfig;
 use pbrl_common::bus::{wait_until, WeightsClient};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_common::Keys;
-use pbrl_learner::rl::ppo::PpoConfig;
-use pbrl_learner::rl::sac::SacConfig;
-use pbrl_learner::run::service::{self, Algo, LearnerConfig};
+use pbrl_learner::run::service;
 
 /// Run `fut`, not polling it while `paused` holds true.
 async fn pausable<F: std::future::Future>(
@@ -66,20 +64,7 @@ async fn a_paused_learner_loses_nothing_and_no_transport_closes() {
     // The actors' share of a version is large during SAC's random steps (the rest of them):
     // paused there, the learner is sent hundreds of trajectories, more than zenoh's default
     // FIFO of 256 would hold.
-    let cfg = LearnerConfig {
-        sac: SacConfig {
-            hidden: vec![16, 16],
-            batch: 16,
-            random_steps: 36_000,
-            update_every: 50,
-            ..SacConfig::default()
-        },
-        ppo: PpoConfig::default(),
-        log_every: 10_000,
-        eval_episodes: 4,
-        eval_sampled: true,
-        ..support::point_learner(run, Algo::Sac, 40_000)
-    };
+    let cfg = support::bus_learner(run, 40_000, 36_000, 50);
 
     // An observer on the learner's session counts every trajectory the actors publish.
     let published = Arc::new(AtomicU64::new(0));
@@ -135,18 +120,7 @@ async fn a_paused_learner_loses_nothing_and_no_transport_closes() {
     let during = published.load(Ordering::Relaxed) - at_pause;
     pause.send(false).unwrap();
 
-    let summary = tokio::time::timeout(Duration::from_secs(180), learner)
-        .await
-        .expect("the run ends")
-        .unwrap()
-        .unwrap();
-    for a in actors {
-        tokio::time::timeout(Duration::from_secs(30), a)
-            .await
-            .unwrap()
-            .unwrap()
-            .unwrap();
-    }
+    let summary = support::run_ends(learner, actors, 180).await;
     assert_eq!(support::closed_transports(), 0, "no transport closed");
     let received: u64 = summary.episodes_by_actor.values().sum();
     assert!(during >= 300, "{during} trajectories came while paused");

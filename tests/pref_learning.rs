@@ -103,20 +103,12 @@ async fn preference_return(reward: RewardSource) -> (f64, f64) {
     let session = ConnectArgs::router_on(&endpoint).open().await.unwrap();
     let run = format!("decouple-{}", reward.name());
     let mut cfg = support::point_learner(&run, Algo::Sac, 9_000);
-    cfg.reward = reward;
-    cfg.actors = 1;
+    support::small_pref(&mut cfg, reward, [1_200, 1_500, 30, 150], [500, 2_000]);
     cfg.sync = true;
     cfg.log_every = 3_000;
     cfg.eval_episodes = 20;
     let p = &mut cfg.pref;
-    p.unsup_steps = 1_200;
-    p.feedback_interval = 1_500;
-    p.queries_per_session = 30;
-    p.max_feedback = 150;
-    p.candidate_factor = 5;
     p.lambda0 = 1.0;
-    p.knn_pool = 2_000;
-    p.annotation_capacity = 500;
     p.model.hidden = vec![64, 64];
     let (tx, rx) = tokio::sync::watch::channel(false);
     let stop = move || {

@@ -4,6 +4,8 @@
 
 mod support;
 
+use support::joined;
+
 use std::time::Duration;
 
 use pbrl_actor::runner::{self, ActorConfig, Task};
@@ -22,19 +24,16 @@ use tokio::sync::watch;
 /// queries at 600, 1,500, 2,400 and 3,300 env steps (a budget of 80), one actor.
 fn pref_point(run: &str, total: u64, dir: &std::path::Path) -> LearnerConfig {
     let mut cfg = support::point_learner(run, Algo::Sac, total);
-    cfg.reward = RewardSource::Pref;
-    cfg.actors = 1;
+    support::small_pref(
+        &mut cfg,
+        RewardSource::Pref,
+        [600, 900, 20, 80],
+        [300, 1_000],
+    );
     cfg.out = Some(dir.to_path_buf());
     // NOTE: the first row (500) comes before the first session (600): still pretraining.
     cfg.log_every = 500;
     let p = &mut cfg.pref;
-    p.unsup_steps = 600;
-    p.feedback_interval = 900;
-    p.queries_per_session = 20;
-    p.max_feedback = 80;
-    p.candidate_factor = 5;
-    p.knn_pool = 1_000;
-    p.annotation_capacity = 300;
     p.query_retry_s = 1;
     p.model.hidden = vec![32, 32];
     p.model.max_epochs = 20;
@@ -88,14 +87,6 @@ fn actor_cfg(run: &str, id: u32) -> ActorConfig {
         world: WorldConfig::default(),
         seed: 1,
     }
-}
-
-async fn joined<T>(task: tokio::task::JoinHandle<anyhow::Result<T>>, secs: u64) -> T {
-    tokio::time::timeout(Duration::from_secs(secs), task)
-        .await
-        .expect("timed out")
-        .expect("the task panicked")
-        .expect("the task failed")
 }
 
 /// Poll the run's label store until `ready` says yes (at most 60 s).

@@ -2,6 +2,8 @@
 
 mod support;
 
+use support::joined;
+
 use std::time::Duration;
 
 use pbrl_actor::point::{POINT_ACT, POINT_OBS};
@@ -55,15 +57,6 @@ async fn learner(
 ) -> tokio::task::JoinHandle<anyhow::Result<service::Summary>> {
     let session = ConnectArgs::connecting_to(endpoint).open().await.unwrap();
     tokio::spawn(service::run(cfg, session, std::future::pending()))
-}
-
-/// A spawned task's result, within `secs` seconds.
-async fn joined<T>(task: tokio::task::JoinHandle<anyhow::Result<T>>, secs: u64) -> T {
-    tokio::time::timeout(Duration::from_secs(secs), task)
-        .await
-        .expect("timed out")
-        .expect("the task panicked")
-        .expect("the task failed")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]

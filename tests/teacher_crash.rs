@@ -97,30 +97,8 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
         dir.path().join("teacher-1.log"),
         dir.path().join("teacher-2.log"),
     );
-    let learner_args: Vec<String> = [
-        "train",
-        "--task=point",
-        "--reward=pref",
-        "--external-teacher",
-        "--actors=1",
-        "--steps=100000",
-        "--eval-episodes=0",
-        "--quiet",
-        "--log-every=1000",
-        "--checkpoint-every=600",
-        "--unsup-steps=600",
-        "--feedback-interval=600",
-        "--queries-per-session=10",
-        "--query-retry-s=1",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain([
-        format!("--connect={endpoint}"),
-        format!("--out={}", out.display()),
-        format!("--run={RUN}"),
-    ])
-    .collect();
+    let learner_args =
+        support::crash_learner_args(&endpoint, &out, RUN, &["--feedback-interval=600"]);
     let teacher_args: Vec<String> = [
         "teacher".to_string(),
         format!("--run={RUN}"),

@@ -48,6 +48,30 @@ impl WorldArgs {
     }
 }
 
+/// One episode: the world, the controller acting in it and the seed of its reset.
+#[derive(Args, Clone, Debug)]
+pub struct EpisodeArgs {
+    #[command(flatten)]
+    pub world: WorldArgs,
+    /// scripted, random or zero.
+    #[arg(long, value_enum, default_value = "scripted")]
+    pub controller: ControllerKind,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl EpisodeArgs {
+    /// Run the episode in a world of `cfg` (this command's world, resolved).
+    fn run(&self, cfg: &WorldConfig) -> Result<pbrl_common::Trajectory> {
+        let mut w = FeedingWorld::new(cfg.clone())?;
+        Ok(run_episode(
+            &mut w,
+            &mut Controller::new(self.controller),
+            self.seed,
+        )?)
+    }
+}
+
 #[derive(Subcommand, Debug)]
 pub enum EnvCommand {
     /// Run episodes with a controller and print each outcome and a summary.
@@ -80,11 +104,7 @@ pub enum EnvCommand {
     /// Run one episode and write its trajectory record (bincode).
     Record {
         #[command(flatten)]
-        world: WorldArgs,
-        #[arg(long, value_enum, default_value = "scripted")]
-        controller: ControllerKind,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
+        episode: EpisodeArgs,
         /// Output file.
         #[arg(long)]
         out: PathBuf,
@@ -92,11 +112,7 @@ pub enum EnvCommand {
     /// Draw one episode (side and front views) as a PNG.
     Render {
         #[command(flatten)]
-        world: WorldArgs,
-        #[arg(long, value_enum, default_value = "scripted")]
-        controller: ControllerKind,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
+        episode: EpisodeArgs,
         /// Draw this recorded trajectory instead of running an episode.
         #[arg(long, value_name = "FILE")]
         from: Option<PathBuf>,
@@ -121,15 +137,8 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
             controller,
             seed,
         } => bench(&world, steps, controller, seed),
-        EnvCommand::Record {
-            world,
-            controller,
-            seed,
-            out,
-        } => {
-            let mut w = FeedingWorld::new(world.config()?)?;
-            let mut c = Controller::new(controller);
-            let t = run_episode(&mut w, &mut c, seed)?;
+        EnvCommand::Record { episode, out } => {
+            let t = episode.run(&episode.world.config()?)?;
             let bytes = t.encode();
             std::fs::write(&out, &bytes).with_context(|| format!("writing {}", out.display()))?;
             println!(
@@ -144,14 +153,8 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
             );
             Ok(())
         }
-        EnvCommand::Render {
-            world,
-            controller,
-            seed,
-            from,
-            out,
-        } => {
-            let cfg = world.config()?;
+        EnvCommand::Render { episode, from, out } => {
+            let cfg = episode.world.config()?;
             let t = match from {
                 Some(path) => {
                     let bytes = std::fs::read(&path)
@@ -159,12 +162,10 @@ pub fn run(cmd: EnvCommand) -> Result<()> {
                     pbrl_common::Trajectory::decode(&bytes)
                         .with_context(|| format!("decoding {}", path.display()))?
                 }
-                None => {
-                    let mut w = FeedingWorld::new(cfg.clone())?;
-                    run_episode(&mut w, &mut Controller::new(controller), seed)?
-                }
+                None => episode.run(&cfg)?,
             };
-            crate::render::render(&t, &cfg, &format!("{controller:?}").to_lowercase(), &out)?;
+            let name = format!("{:?}", episode.controller).to_lowercase();
+            crate::render::render(&t, &cfg, &name, &out)?;
             println!("wrote {}", out.display());
             Ok(())
         }

@@ -13,6 +13,16 @@ use crate::wire;
 pub const LOG_STD_MIN: f64 = -5.0;
 pub const LOG_STD_MAX: f64 = 2.0;
 
+/// Linear layers `sizes[0] -> sizes[1] -> ... -> sizes[n-1]`, named `l0`, `l1`, ... (every
+/// network pbrl trains is such a stack with its own activations).
+pub fn linear_layers(vb: VarBuilder, sizes: &[usize]) -> Result<Vec<Linear>> {
+    sizes
+        .windows(2)
+        .enumerate()
+        .map(|(i, w)| candle_nn::linear(w[0], w[1], vb.pp(format!("l{i}"))))
+        .collect()
+}
+
 /// A multilayer perceptron: ReLU between layers, none after the last.
 #[derive(Clone, Debug)]
 pub struct Mlp {
@@ -22,12 +32,9 @@ pub struct Mlp {
 impl Mlp {
     /// Layers `sizes[0] -> sizes[1] -> ... -> sizes[n-1]`, named `l0`, `l1`, ...
     pub fn new(vb: VarBuilder, sizes: &[usize]) -> Result<Self> {
-        let layers = sizes
-            .windows(2)
-            .enumerate()
-            .map(|(i, w)| candle_nn::linear(w[0], w[1], vb.pp(format!("l{i}"))))
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Self { layers })
+        Ok(Self {
+            layers: linear_layers(vb, sizes)?,
+        })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {

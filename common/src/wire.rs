@@ -254,6 +254,14 @@ impl Answer {
     }
 }
 
+/// Unix time in milliseconds: the clock of [`Query::expires_at_ms`] and of every time a
+/// label's record keeps.
+pub fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
 /// Check a labeller's name.
 pub fn check_labeller(field: &str, name: &str) -> Result<(), WireError> {
     let ok = name.chars().count() <= 40

@@ -26,13 +26,13 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use pbrl_common::wire::{check_labeller, Answer, LearnerStatus, Preference, Query};
+use pbrl_common::wire::{check_labeller, now_ms, Answer, LearnerStatus, Preference, Query};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rusqlite::{params, Connection};
 use serde::{Deserialize, Serialize};
 
-use crate::outbox::{self, Outbox};
+use crate::outbox::{self, code, Outbox};
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
 use crate::teacher::Teacher;
 
@@ -206,16 +206,6 @@ where
     db.prepare(sql)?
         .query_map([], |r| T::try_from(r))?
         .collect()
-}
-
-fn code() -> bincode::config::Configuration {
-    bincode::config::standard()
-}
-
-fn now_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
 }
 
 impl Desk {

@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::wire::{Answer, AnswerAck, Query};
+use pbrl_common::wire::{now_ms, Answer, AnswerAck, Query};
 use rusqlite::{params, Connection};
 
 const CREATE: &str = "
@@ -88,14 +88,9 @@ pub fn open_durable(path: &Path, what: &str) -> Result<Connection> {
     Ok(db)
 }
 
-fn code() -> bincode::config::Configuration {
+/// The encoding of every query and answer the teacher's file keeps.
+pub(crate) fn code() -> bincode::config::Configuration {
     bincode::config::standard()
-}
-
-fn now_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
 }
 
 impl Outbox {

@@ -143,6 +143,68 @@ pub fn point_learner(run: &str, algo: Algo, total: u64) -> LearnerConfig {
     cfg
 }
 
+/// A SAC learner for the point task as the bus tests run it: a 16x16 net on minibatches
+/// of 16, `random_steps` random steps, an update every `update_every` steps and 4 sampled
+/// evaluation episodes per request, so that most of its time is on the bus.
+pub fn bus_learner(run: &str, total: u64, random_steps: u64, update_every: u64) -> LearnerConfig {
+    LearnerConfig {
+        sac: SacConfig {
+            hidden: vec![16, 16],
+            batch: 16,
+            random_steps,
+            update_every,
+            ..SacConfig::default()
+        },
+        ppo: PpoConfig::default(),
+        log_every: 10_000,
+        eval_episodes: 4,
+        eval_sampled: true,
+        ..point_learner(run, Algo::Sac, total)
+    }
+}
+
+/// A spawned task's result, within `secs` seconds.
+pub async fn joined<T>(task: tokio::task::JoinHandle<anyhow::Result<T>>, secs: u64) -> T {
+    tokio::time::timeout(std::time::Duration::from_secs(secs), task)
+        .await
+        .expect("timed out")
+        .expect("the task panicked")
+        .expect("the task failed")
+}
+
+/// The learner's result once it ends (within `secs` seconds), after which every actor
+/// ends too (within 30 s each), cleanly.
+pub async fn run_ends<S, A>(
+    learner: tokio::task::JoinHandle<anyhow::Result<S>>,
+    actors: Vec<tokio::task::JoinHandle<anyhow::Result<A>>>,
+    secs: u64,
+) -> S {
+    let summary = joined(learner, secs).await;
+    for a in actors {
+        joined(a, 30).await;
+    }
+    summary
+}
+
+/// `cfg` with one actor learning from preferences with `reward` on a feedback schedule
+/// small enough for tests: sessions of `per_session` queries (five candidates for each) at
+/// `first` env steps and every `every` after it, `budget` labels in all; the annotation
+/// buffer and the entropy bonus's pool hold `buffer` and `pool` trajectories and states.
+pub fn small_pref(
+    cfg: &mut LearnerConfig,
+    reward: RewardSource,
+    [first, every, per_session, budget]: [u64; 4],
+    [buffer, pool]: [usize; 2],
+) {
+    cfg.reward = reward;
+    cfg.actors = 1;
+    let p = &mut cfg.pref;
+    (p.unsup_steps, p.feedback_interval) = (first, every);
+    (p.queries_per_session, p.max_feedback) = (per_session, budget);
+    p.candidate_factor = 5;
+    (p.annotation_capacity, p.knn_pool) = (buffer, pool);
+}
+
 /// A 200-step trajectory of a 2-dimensional task (about 20 KB on the wire).
 pub fn trajectory(seed: u64) -> Trajectory {
     Trajectory {
@@ -195,6 +257,41 @@ pub fn spawn_pbrl<S: AsRef<std::ffi::OsStr>>(
         .stderr(file)
         .spawn()
         .expect("the pbrl binary runs")
+}
+
+/// The arguments of the `pbrl train` the crash tests kill: the point task learnt from an
+/// external teacher's preferences, a checkpoint every 600 steps, the first feedback session
+/// at 600, ten queries each, resent after a second; `extra` flags after these.
+pub fn crash_learner_args(
+    endpoint: &str,
+    out: &std::path::Path,
+    run: &str,
+    extra: &[&str],
+) -> Vec<String> {
+    [
+        "train",
+        "--task=point",
+        "--reward=pref",
+        "--external-teacher",
+        "--actors=1",
+        "--steps=100000",
+        "--eval-episodes=0",
+        "--quiet",
+        "--log-every=1000",
+        "--checkpoint-every=600",
+        "--unsup-steps=600",
+        "--queries-per-session=10",
+        "--query-retry-s=1",
+    ]
+    .iter()
+    .chain(extra)
+    .map(|s| s.to_string())
+    .chain([
+        format!("--connect={endpoint}"),
+        format!("--out={}", out.display()),
+        format!("--run={run}"),
+    ])
+    .collect()
 }
 
 /// Send `sig` (`-STOP`, `-KILL`, ...) to `child`.

@@ -20,8 +20,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::wire::TrajectoryMsg;
-use pbrl_common::wire::{self, Answer, AnswerAck, Body, Preference, Query, Shown};
+use pbrl_common::wire::{
+    self, now_ms, Answer, AnswerAck, Body, Preference, Query, Shown, TrajectoryMsg,
+};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -31,13 +32,6 @@ use crate::pref::labels::{LabelStore, Stored, StoredTrajectory};
 use crate::pref::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler};
 use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
 use crate::state::RngState;
-
-/// Unix time in milliseconds.
-pub fn now_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
-}
 
 /// Counters of the feedback loop (saved with each checkpoint).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]

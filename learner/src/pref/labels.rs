@@ -907,6 +907,17 @@ mod tests {
             .unwrap()
     }
 
+    /// What a run leaves in the store at `path`: one query of two trajectories, answered
+    /// `p` if given, and the store closed.
+    fn left_behind(path: &Path, p: Option<Preference>) -> Asked {
+        let mut store = LabelStore::open(path, "run").unwrap();
+        let q = ask(&mut store, &traj(0, 1, 3), &traj(1, 1, 3));
+        if let Some(p) = p {
+            answer(&mut store, q.query, p);
+        }
+        q
+    }
+
     fn answer(store: &mut LabelStore, query: u64, p: Preference) -> Stored {
         store
             .answer(
@@ -1030,10 +1041,7 @@ mod tests {
     fn an_answer_after_a_restart_is_stored_once() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("labels.sqlite");
-        let q = {
-            let mut store = LabelStore::open(&path, "run").unwrap();
-            ask(&mut store, &traj(0, 1, 3), &traj(1, 1, 3))
-        };
+        let q = left_behind(&path, None);
         // The learner restarts; the teacher, unacknowledged, sends its answer twice.
         let mut store = LabelStore::open(&path, "run").unwrap();
         assert_eq!(store.open_queries().unwrap().len(), 1);
@@ -1088,12 +1096,7 @@ mod tests {
     fn a_schema_1_store_is_upgraded_in_place_and_keeps_its_labels() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("labels.sqlite");
-        let q = {
-            let mut store = LabelStore::open(&path, "run").unwrap();
-            let q = ask(&mut store, &traj(0, 1, 3), &traj(0, 2, 3));
-            answer(&mut store, q.query, Preference::First);
-            q
-        };
+        let q = left_behind(&path, Some(Preference::First));
         // Back to the layout of schema 1, as an older build wrote it.
         let conn = Connection::open(&path).unwrap();
         conn.execute_batch(

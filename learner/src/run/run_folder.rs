@@ -112,7 +112,8 @@ impl RunFolder {
         self.root.join("labels.sqlite")
     }
 
-    /// The in-process human teacher's queue and answers (`pbrl train --teacher human`).
+    /// The in-process teacher's file (SQLite): its outbox of answers not yet acknowledged,
+    /// and for a person (`--teacher human`) the queue of queries too.
     pub fn teacher(&self) -> PathBuf {
         self.root.join("teacher.sqlite")
     }
@@ -159,9 +160,7 @@ impl RunFolder {
             if !labels.exists() {
                 continue;
             }
-            let ms = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_millis());
+            let ms = pbrl_common::wire::now_ms();
             for suffix in ["", "-wal", "-shm"] {
                 let from = PathBuf::from(format!("{}{suffix}", labels.display()));
                 let to = PathBuf::from(format!("{}.{ms}.old{suffix}", labels.display()));

@@ -24,12 +24,9 @@ impl RewardNet {
             .chain(hidden.iter().copied())
             .chain(std::iter::once(1))
             .collect();
-        let layers = sizes
-            .windows(2)
-            .enumerate()
-            .map(|(i, w)| candle_nn::linear(w[0], w[1], vb.pp(format!("l{i}"))))
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Self { layers })
+        Ok(Self {
+            layers: pbrl_common::nets::linear_layers(vb, &sizes)?,
+        })
     }
 
     /// Per-row rewards `[rows, 1]` in (-1, 1), with candle's ops (and its autodiff): the
@@ -61,7 +58,7 @@ impl RewardNet {
             let b = l
                 .bias()
                 .ok_or_else(|| candle_core::Error::Msg("reward layer without bias".into()))?;
-            z.inplace_op2(&b.detach(), &BiasAct(act))?;
+            z.inplace_op2(&b.detach(), &InPlace(BiasAct(act)))?;
             if let Some(t) = tape.as_deref_mut() {
                 t.push(h);
             }
@@ -90,11 +87,11 @@ impl RewardNet {
             let dh = dz.matmul(&self.layers[i].weight().detach())?;
             // LeakyReLU: the layer's input h = leaky(z) has z's sign, so its slope is 1
             // where h > 0 and LEAKY_SLOPE elsewhere; the bias gradient is the column sum.
-            let back = LeakyBack {
+            let back = InPlace(LeakyBack {
                 colsum: RefCell::new(std::mem::take(&mut acc.b[i - 1])),
-            };
+            });
             dh.inplace_op2(&tape[i], &back)?;
-            acc.b[i - 1] = back.colsum.into_inner();
+            acc.b[i - 1] = back.0.colsum.into_inner();
             dz = dh;
         }
         Ok(())
@@ -147,27 +144,18 @@ enum Act {
     Tanh,
 }
 
-/// A row-major f32 slice of a CPU tensor's storage.
-fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, op: &str) -> Result<&'a [f32]> {
-    match (s, l.contiguous_offsets()) {
-        (CpuStorage::F32(v), Some((a, b))) => Ok(&v[a..b]),
-        _ => candle_core::bail!("{op}: needs a contiguous f32 tensor"),
-    }
+/// An elementwise pass over a layer's values in place: `out` is written, `input` read.
+trait Kernel {
+    const NAME: &'static str;
+    fn apply(&self, out: &mut [f32], input: &[f32]);
 }
 
-fn f32_slice_mut<'a>(s: &'a mut CpuStorage, l: &Layout, op: &str) -> Result<&'a mut [f32]> {
-    match (s, l.contiguous_offsets()) {
-        (CpuStorage::F32(v), Some((a, b))) => Ok(&mut v[a..b]),
-        _ => candle_core::bail!("{op}: needs a contiguous f32 tensor"),
-    }
-}
+/// A [`Kernel`] as candle's in-place op on two CPU tensors.
+struct InPlace<K>(K);
 
-/// `z <- act(z + b)` in place, `b` broadcast over rows.
-struct BiasAct(Act);
-
-impl InplaceOp2 for BiasAct {
+impl<K: Kernel> InplaceOp2 for InPlace<K> {
     fn name(&self) -> &'static str {
-        "reward-bias-act"
+        K::NAME
     }
 
     fn cpu_fwd(
@@ -177,8 +165,23 @@ impl InplaceOp2 for BiasAct {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<()> {
-        let b = f32_slice(s2, l2, self.name())?;
-        let z = f32_slice_mut(s1, l1, self.name())?;
+        match (s1, l1.contiguous_offsets(), s2, l2.contiguous_offsets()) {
+            (CpuStorage::F32(x), Some((a, b)), CpuStorage::F32(y), Some((c, d))) => {
+                self.0.apply(&mut x[a..b], &y[c..d]);
+                Ok(())
+            }
+            _ => candle_core::bail!("{}: needs contiguous f32 tensors", K::NAME),
+        }
+    }
+}
+
+/// `z <- act(z + b)` in place, `b` broadcast over rows.
+struct BiasAct(Act);
+
+impl Kernel for BiasAct {
+    const NAME: &'static str = "reward-bias-act";
+
+    fn apply(&self, z: &mut [f32], b: &[f32]) {
         let slope = LEAKY_SLOPE as f32;
         for row in z.chunks_exact_mut(b.len()) {
             for (x, bi) in row.iter_mut().zip(b) {
@@ -191,7 +194,6 @@ impl InplaceOp2 for BiasAct {
                 };
             }
         }
-        Ok(())
     }
 }
 
@@ -200,20 +202,10 @@ struct LeakyBack {
     colsum: RefCell<Vec<f32>>,
 }
 
-impl InplaceOp2 for LeakyBack {
-    fn name(&self) -> &'static str {
-        "reward-leaky-backward"
-    }
+impl Kernel for LeakyBack {
+    const NAME: &'static str = "reward-leaky-backward";
 
-    fn cpu_fwd(
-        &self,
-        s1: &mut CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<()> {
-        let h = f32_slice(s2, l2, self.name())?;
-        let dh = f32_slice_mut(s1, l1, self.name())?;
+    fn apply(&self, dh: &mut [f32], h: &[f32]) {
         let mut colsum = self.colsum.borrow_mut();
         let width = colsum.len();
         let slope = LEAKY_SLOPE as f32;
@@ -223,6 +215,5 @@ impl InplaceOp2 for LeakyBack {
                 *c += *d;
             }
         }
-        Ok(())
     }
 }
