@@ -9,7 +9,8 @@ use crate::train::{explicit_flags, train_in_process, TrainArgs};
 #[derive(clap::Subcommand, Debug)]
 pub enum BenchCommand {
     /// SAC gradient steps and PPO minibatch updates per second (obs 25, action 7), at
-    /// 256x256 / batch 256 and 512x512 / batch 512, on 1 and 2 threads.
+    /// 256x256 / batch 256 and 512x512 / batch 512, on 1 and 2 learner threads (the SIMD path
+    /// and the CPU printed first).
     Learner {
         /// Gradient steps per timing.
         #[arg(long, default_value_t = 30)]
@@ -48,6 +49,19 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 50_000)]
         increment: u64,
     },
+}
+
+/// The CPU's model name (`/proc/cpuinfo`), to say which machine a figure comes from.
+fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown".into())
 }
 
 /// `pbrl train`'s arguments, parsed from a command line (for the benchmark).
@@ -175,15 +189,20 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
     };
     println!(
+        "CPU: {}; SIMD path: {}; the matrix kernel on 1 thread, the step's pairs on --learner-threads",
+        cpu_model(),
+        pbrl_common::par::simd_path()
+    );
+    println!(
         "{:<8} {:>10} {:>8} {:>12} {:>12}",
         "threads", "hidden", "batch", "SAC ms/step", "PPO ms/mb"
     );
+    // NOTE: candle reads RAYON_NUM_THREADS at every matmul: one thread each, as a service.
+    std::env::set_var("RAYON_NUM_THREADS", "1");
     for threads in [1, 2] {
-        // NOTE: candle reads RAYON_NUM_THREADS at every matmul.
-        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
         for (hidden, batch) in [(256, 256), (512, 512)] {
-            let sac = pbrl_learner::bench::sac_step_ms(hidden, batch, steps, 3)?;
-            let ppo = pbrl_learner::bench::ppo_update_ms(hidden, batch, 4000)?;
+            let sac = pbrl_learner::bench::sac_step_ms(hidden, batch, steps, 3, threads)?;
+            let ppo = pbrl_learner::bench::ppo_update_ms(hidden, batch, 4000, threads)?;
             println!(
                 "{threads:<8} {:>10} {batch:>8} {sac:>12.2} {ppo:>12.2}   ({:.0} SAC steps/s, {:.0} PPO updates/s)",
                 format!("{hidden}x{hidden}"),
@@ -192,14 +211,12 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             );
         }
     }
-    // What preference learning adds, on one thread (as a service runs).
-    std::env::set_var("RAYON_NUM_THREADS", "1");
     println!();
-    println!("preference learning (1 thread):");
+    println!("preference learning (2 learner threads, as `pbrl train` runs by default):");
     for (reward_hidden, name) in [(vec![64, 64, 64], "3x64"), (vec![256, 256, 256], "3x256")] {
-        let plain = pbrl_learner::bench::sac_step_ms(256, 256, steps, 3)?;
+        let plain = pbrl_learner::bench::sac_step_ms(256, 256, steps, 3, 2)?;
         let relabelled =
-            pbrl_learner::bench::sac_step_relabelled_ms(256, 256, steps, 3, &reward_hidden)?;
+            pbrl_learner::bench::sac_step_relabelled_ms(256, 256, steps, 3, &reward_hidden, 2)?;
         let epoch = pbrl_learner::bench::bench_epoch(1000, 200, &reward_hidden)?;
         println!(
             "  ensemble 3 x {name}: SAC step (256x256, B=256) {plain:.2} ms, relabelled {relabelled:.2} ms (+{:.0}%); one training epoch over 1,000 labels of 200-step pairs {epoch:.2} s",

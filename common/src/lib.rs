@@ -6,6 +6,7 @@ pub mod connect;
 pub mod keys;
 pub mod nets;
 pub mod normalize;
+pub mod par;
 pub mod trajectory;
 pub mod wire;
 

@@ -7,6 +7,7 @@ use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Linear, Module, VarBuilder, VarMap};
 use rand::Rng;
 
+use crate::par::Par;
 use crate::wire;
 
 /// Bounds of the policy's log standard deviation (CleanRL's SAC).
@@ -50,6 +51,7 @@ impl Mlp {
 }
 
 /// What [`Mlp::forward_taped`] keeps for [`Mlp::backward`]: each layer's input.
+#[derive(Clone)]
 pub struct MlpTape {
     inputs: Vec<Tensor>,
 }
@@ -87,25 +89,61 @@ impl Mlp {
         &self,
         tape: &MlpTape,
         dy: &Tensor,
+        grads: Option<&mut GradStore>,
+        want_dx: bool,
+    ) -> Result<Option<Tensor>> {
+        self.backward_on(tape, dy, grads, want_dx, &Par::default())
+    }
+
+    /// [`Mlp::backward`] with each layer's weight gradients beside its input gradient on
+    /// `par` (the two products share only their inputs).
+    pub fn backward_on(
+        &self,
+        tape: &MlpTape,
+        dy: &Tensor,
         mut grads: Option<&mut GradStore>,
         want_dx: bool,
+        par: &Par,
     ) -> Result<Option<Tensor>> {
         let mut dz = dy.clone();
         for (i, l) in self.layers.iter().enumerate().rev() {
             let x = &tape.inputs[i];
-            if let Some(g) = grads.as_deref_mut() {
-                g.insert(l.weight(), dz.t()?.matmul(x)?);
-                if let Some(b) = l.bias() {
+            let wants_dx = i > 0 || want_dx;
+            let weight_grads = {
+                let (dz, x, with_bias) = (dz.clone(), x.clone(), l.bias().is_some());
+                move || -> Result<(Tensor, Option<Tensor>)> {
+                    let dw = dz.t()?.matmul(&x)?;
                     // NOTE: the column sums as a product with a row of ones: candle's
                     // reduction over the batch dimension is several times slower.
-                    let ones = Tensor::ones((1, dz.dim(0)?), dz.dtype(), dz.device())?;
-                    g.insert(b, ones.matmul(&dz)?.squeeze(0)?);
+                    let db = with_bias
+                        .then(|| {
+                            let ones = Tensor::ones((1, dz.dim(0)?), dz.dtype(), dz.device())?;
+                            ones.matmul(&dz)?.squeeze(0)
+                        })
+                        .transpose()?;
+                    Ok((dw, db))
                 }
-            }
-            if i == 0 && !want_dx {
+            };
+            let input_grad = || {
+                wants_dx
+                    .then(|| dz.matmul(&l.weight().detach()))
+                    .transpose()
+            };
+            let dx = match grads.as_deref_mut() {
+                Some(g) => {
+                    let (dx, wg) = par.join(input_grad, weight_grads);
+                    let (dw, db) = wg?;
+                    g.insert(l.weight(), dw);
+                    if let (Some(b), Some(db)) = (l.bias(), db) {
+                        g.insert(b, db);
+                    }
+                    dx?
+                }
+                None => input_grad()?,
+            };
+            let Some(dx) = dx else {
                 return Ok(None);
-            }
-            let dx = dz.matmul(&l.weight().detach())?;
+            };
             if i == 0 {
                 return Ok(Some(dx));
             }
@@ -298,12 +336,14 @@ impl GaussianPolicy {
         dmean: &Tensor,
         dlog_std: &Tensor,
         grads: &mut GradStore,
+        par: &Par,
     ) -> Result<()> {
         // log_std = k tanh(raw) + c: d/draw = k (1 - tanh(raw)^2).
         let k = (LOG_STD_MAX - LOG_STD_MIN) / 2.0;
         let draw = (dlog_std * tape.tanh_raw.sqr()?.affine(-k, k)?)?;
         let dout = Tensor::cat(&[dmean, &draw], D::Minus1)?;
-        self.mlp.backward(&tape.mlp, &dout, Some(grads), false)?;
+        self.mlp
+            .backward_on(&tape.mlp, &dout, Some(grads), false, par)?;
         Ok(())
     }
 
@@ -351,7 +391,7 @@ impl GaussianPolicy {
     ) -> Result<()> {
         let dmean = tape.z_over_std.broadcast_mul(dlogp)?;
         let dlog_std = tape.z.sqr()?.affine(1.0, -1.0)?.broadcast_mul(dlogp)?;
-        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads)
+        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads, &Par::default())
     }
 
     /// The weights' gradients, into `grads`, of a loss `L` whose gradient with respect to
@@ -362,19 +402,21 @@ impl GaussianPolicy {
     /// are `d logp / d mean = 2a` and `d logp / d log_std = 2a std eps - 1` (the Gaussian
     /// term's `z = eps` does not move), so
     /// `dL/d mean = da (1 - a^2) + 2 dlogp a` and `dL/d log_std = dL/d mean std eps - dlogp`,
-    /// then through the squash of the log-std, `(MAX - MIN) / 2 (1 - tanh(raw)^2)`.
+    /// then through the squash of the log-std, `(MAX - MIN) / 2 (1 - tanh(raw)^2)`. Each
+    /// layer's weight and input gradients run side by side on `par`.
     pub fn backward_sample(
         &self,
         tape: &PolicyTape,
         da: &Tensor,
         dlogp: f64,
         grads: &mut GradStore,
+        par: &Par,
     ) -> Result<()> {
         let a = &tape.a;
         let du = (da * a.sqr()?.affine(-1.0, 1.0)?)?;
         let dmean = (du + (a * (2.0 * dlogp))?)?;
         let dlog_std = ((&dmean * &tape.std_eps)? - dlogp)?;
-        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads)
+        self.backward_dist(&tape.dist, &dmean, &dlog_std, grads, par)
     }
 
     /// The action for one observation, as the network sees it (normalised where the
@@ -473,10 +515,12 @@ impl TwinQ {
         })
     }
 
-    /// Both Q values, `[batch, 1]` each.
-    pub fn forward(&self, obs: &Tensor, act: &Tensor) -> Result<(Tensor, Tensor)> {
+    /// Both Q values, `[batch, 1]` each (the two networks side by side on `par`).
+    pub fn forward(&self, obs: &Tensor, act: &Tensor, par: &Par) -> Result<(Tensor, Tensor)> {
         let x = Tensor::cat(&[obs, act], D::Minus1)?;
-        Ok((self.q1.forward(&x)?, self.q2.forward(&x)?))
+        let (q2, x2) = (self.q2.clone(), x.clone());
+        let (q1, q2) = par.join(|| self.q1.forward(&x), move || q2.forward(&x2));
+        Ok((q1?, q2?))
     }
 
     /// [`TwinQ::forward`] outside candle's autodiff, with each network's tape.
@@ -484,27 +528,43 @@ impl TwinQ {
         &self,
         obs: &Tensor,
         act: &Tensor,
+        par: &Par,
     ) -> Result<((Tensor, Tensor), [MlpTape; 2])> {
         let x = Tensor::cat(&[obs, act], D::Minus1)?;
-        let (q1, t1) = self.q1.forward_taped(&x)?;
-        let (q2, t2) = self.q2.forward_taped(&x)?;
+        let (q2, x2) = (self.q2.clone(), x.clone());
+        let (r1, r2) = par.join(|| self.q1.forward_taped(&x), move || q2.forward_taped(&x2));
+        let ((q1, t1), (q2, t2)) = (r1?, r2?);
         Ok(((q1, q2), [t1, t2]))
     }
 
-    /// Backpropagate the gradients `dq` of both outputs: into the weights' gradients when
-    /// `grads` is given, and to the action (`[batch, act_dim]`, the sum over both networks)
-    /// when `want_da`.
+    /// Backpropagate the gradients `dq` of both outputs (the two networks side by side on
+    /// `par`): into the weights' gradients when `grads` is given, and to the action
+    /// (`[batch, act_dim]`, the sum over both networks) when `want_da`.
     pub fn backward(
         &self,
         tapes: &[MlpTape; 2],
         dq: [&Tensor; 2],
         mut grads: Option<&mut GradStore>,
         want_da: bool,
+        par: &Par,
     ) -> Result<Option<Tensor>> {
-        let dx1 = self
-            .q1
-            .backward(&tapes[0], dq[0], grads.as_deref_mut(), want_da)?;
-        let dx2 = self.q2.backward(&tapes[1], dq[1], grads, want_da)?;
+        let want_grads = grads.is_some();
+        let (q2, tape2, dq2) = (self.q2.clone(), tapes[1].clone(), dq[1].clone());
+        let (r1, r2) = par.join(
+            || {
+                self.q1
+                    .backward(&tapes[0], dq[0], grads.as_deref_mut(), want_da)
+            },
+            move || {
+                let mut g2 = GradStore::default();
+                let dx2 = q2.backward(&tape2, &dq2, want_grads.then_some(&mut g2), want_da)?;
+                Ok::<_, candle_core::Error>((dx2, g2))
+            },
+        );
+        let (dx1, (dx2, g2)) = (r1?, r2?);
+        if let Some(g) = grads {
+            g.extend(g2)?;
+        }
         let (Some(dx1), Some(dx2)) = (dx1, dx2) else {
             return Ok(None);
         };

@@ -51,9 +51,16 @@ fn synthetic(rng: &mut ChaCha8Rng, seed: u64, steps: usize) -> Trajectory {
     }
 }
 
-/// Milliseconds per SAC gradient step (median of `reps` timings of `steps` steps each).
-pub fn sac_step_ms(hidden: usize, batch: usize, steps: usize, reps: usize) -> Result<f64> {
-    sac_step_with(hidden, batch, steps, reps, None)
+/// Milliseconds per SAC gradient step on `threads` learner threads (median of `reps`
+/// timings of `steps` steps each).
+pub fn sac_step_ms(
+    hidden: usize,
+    batch: usize,
+    steps: usize,
+    reps: usize,
+    threads: usize,
+) -> Result<f64> {
+    sac_step_with(hidden, batch, steps, reps, threads, None)
 }
 
 /// Milliseconds per SAC gradient step whose minibatch reward is the mean of a reward
@@ -64,13 +71,14 @@ pub fn sac_step_relabelled_ms(
     steps: usize,
     reps: usize,
     reward_hidden: &[usize],
+    threads: usize,
 ) -> Result<f64> {
     let cfg = RewardModelConfig {
         hidden: reward_hidden.to_vec(),
         ..Default::default()
     };
     let model = RewardModel::new(cfg, OBS, ACT)?;
-    sac_step_with(hidden, batch, steps, reps, Some(&model))
+    sac_step_with(hidden, batch, steps, reps, threads, Some(&model))
 }
 
 fn sac_step_with(
@@ -78,6 +86,7 @@ fn sac_step_with(
     batch: usize,
     steps: usize,
     reps: usize,
+    threads: usize,
     model: Option<&RewardModel>,
 ) -> Result<f64> {
     let reward = |b: &crate::rl::replay::Batch| match model {
@@ -93,6 +102,7 @@ fn sac_step_with(
         ..SacConfig::default()
     };
     let mut sac = Sac::new(cfg, OBS, ACT)?;
+    sac.set_threads(threads)?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     for s in 0..50 {
         sac.observe(&synthetic(&mut rng, s, 200));
@@ -112,8 +122,14 @@ fn sac_step_with(
     Ok(times[times.len() / 2])
 }
 
-/// Milliseconds per PPO minibatch update (policy and value), one epoch over a rollout.
-pub fn ppo_update_ms(hidden: usize, minibatch: usize, rollout: usize) -> Result<f64> {
+/// Milliseconds per PPO minibatch update (policy and value) on `threads` learner threads,
+/// one epoch over a rollout.
+pub fn ppo_update_ms(
+    hidden: usize,
+    minibatch: usize,
+    rollout: usize,
+    threads: usize,
+) -> Result<f64> {
     let cfg = PpoConfig {
         hidden: vec![hidden, hidden],
         minibatch,
@@ -122,6 +138,7 @@ pub fn ppo_update_ms(hidden: usize, minibatch: usize, rollout: usize) -> Result<
         ..PpoConfig::default()
     };
     let mut ppo = Ppo::new(cfg, OBS, ACT)?;
+    ppo.set_threads(threads)?;
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let data: Vec<Trajectory> = (0..(rollout / 200) as u64)
         .map(|s| synthetic(&mut rng, s, 200))

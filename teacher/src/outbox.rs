@@ -73,9 +73,16 @@ pub struct Outbox {
     kept: BTreeMap<Key, Kept>,
 }
 
-/// Open a SQLite file (creating it) for a store that must survive a power cut: WAL, and
-/// every commit synced. `:memory:` keeps nothing.
+/// Open a SQLite file (creating it, and its folder) for a store that must survive a power
+/// cut: WAL, and every commit synced. `:memory:` keeps nothing.
 pub fn open_durable(path: &Path, what: &str) -> Result<Connection> {
+    if path.as_os_str() != ":memory:" {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            // NOTE: an in-process teacher may start before the learner makes the run folder.
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating the folder of the {what} {}", path.display()))?;
+        }
+    }
     let db =
         Connection::open(path).with_context(|| format!("opening the {what} {}", path.display()))?;
     let context = || format!("setting up the {what} {}", path.display());
@@ -281,6 +288,14 @@ impl Outbox {
 mod tests {
     use super::*;
     use pbrl_common::wire::{Preference, Shown};
+
+    #[test]
+    fn an_outbox_in_a_folder_not_made_yet_is_opened() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run-not-made-yet").join("teacher.sqlite");
+        Outbox::open(&path, "t-0").unwrap();
+        assert!(path.exists());
+    }
 
     fn ack(queries: &[u64], repeats: &[(u64, &str)]) -> AnswerAck {
         AnswerAck {

@@ -10,6 +10,7 @@
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor};
 use pbrl_common::nets::{GaussianPolicy, Owned, ValueNet};
+use pbrl_common::par::Par;
 use pbrl_common::{RunningNorm, Trajectory};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -184,6 +185,8 @@ pub struct Ppo {
     v_opt: Adam,
     pub norm: RunningNorm,
     rng: ChaCha8Rng,
+    /// Where a minibatch's policy and value gradients run.
+    par: Par,
     /// Env steps trained on.
     pub env_steps: u64,
     /// Minibatch updates made.
@@ -260,9 +263,17 @@ impl Ppo {
             v_opt,
             norm,
             rng,
+            par: Par::default(),
             env_steps: 0,
             updates: 0,
         })
+    }
+
+    /// Take each minibatch's policy and value gradients on `threads` threads (1 or 2; the
+    /// default is 1), side by side on two. The updates do not change.
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        self.par = Par::new(threads).map_err(candle_core::Error::wrap)?;
+        Ok(())
     }
 
     /// Normalised observations of `t` as a `[steps + 1, obs_dim]` tensor.
@@ -285,20 +296,30 @@ impl Ppo {
         ret: &Tensor,
         clip: f64,
     ) -> Result<Minibatch> {
-        let (logp, tape) = self.policy.net.log_prob_taped(obs, act)?;
-        let (policy_loss, dlogp) = clipped_policy_loss_and_grad(&logp, logp_old, adv, clip)?;
-        let mut policy_grads = GradStore::default();
-        self.policy
-            .net
-            .backward_log_prob(&tape, &dlogp, &mut policy_grads)?;
-        let (v, tape) = self.value.net.forward_taped(obs)?;
-        let err = (v - ret)?;
-        let value_loss = err.sqr()?.mean_all()?;
-        let scale = 2.0 * self.cfg.value_coef / err.dim(0)? as f64;
-        let mut value_grads = GradStore::default();
-        self.value
-            .net
-            .backward(&tape, &(err * scale)?, &mut value_grads)?;
+        // The policy here, the value network beside it (they share nothing).
+        let (value, obs_v, ret) = (self.value.net.clone(), obs.clone(), ret.clone());
+        let value_coef = self.cfg.value_coef;
+        let (policy, value) = self.par.join(
+            || {
+                let (logp, tape) = self.policy.net.log_prob_taped(obs, act)?;
+                let (loss, dlogp) = clipped_policy_loss_and_grad(&logp, logp_old, adv, clip)?;
+                let mut grads = GradStore::default();
+                self.policy
+                    .net
+                    .backward_log_prob(&tape, &dlogp, &mut grads)?;
+                Ok::<_, candle_core::Error>((logp, loss, grads))
+            },
+            move || {
+                let (v, tape) = value.forward_taped(&obs_v)?;
+                let err = (v - ret)?;
+                let loss = err.sqr()?.mean_all()?;
+                let scale = 2.0 * value_coef / err.dim(0)? as f64;
+                let mut grads = GradStore::default();
+                value.backward(&tape, &(err * scale)?, &mut grads)?;
+                Ok::<_, candle_core::Error>((loss, grads))
+            },
+        );
+        let ((logp, policy_loss, policy_grads), (value_loss, value_grads)) = (policy?, value?);
         Ok(Minibatch {
             logp,
             policy_loss,

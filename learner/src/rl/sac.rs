@@ -8,7 +8,8 @@
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::VarMap;
-use pbrl_common::nets::{export, GaussianPolicy, Owned, TwinQ};
+use pbrl_common::nets::{export, GaussianPolicy, Owned, PolicyTape, TwinQ};
+use pbrl_common::par::Par;
 use pbrl_common::Trajectory;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -146,6 +147,8 @@ pub struct Sac {
     alpha_opt: Adam,
     replay: Replay,
     rng: ChaCha8Rng,
+    /// Where the step's pairs of independent work run.
+    par: Par,
     /// Env steps observed.
     pub env_steps: u64,
     /// Gradient steps taken.
@@ -162,6 +165,23 @@ pub struct SacState {
     pub rng: RngState,
     pub env_steps: u64,
     pub updates: u64,
+}
+
+/// Polyak: `target <- tau * critic + (1 - tau) * target`.
+fn polyak(critic: &VarMap, target: &VarMap, tau: f64) -> Result<()> {
+    let poisoned = || candle_core::Error::Msg("poisoned".into());
+    let src = critic.data().lock().map_err(|_| poisoned())?;
+    let dst = target.data().lock().map_err(|_| poisoned())?;
+    let flat = |t: &Var| t.flatten_all()?.to_vec1::<f32>();
+    let (a, b) = (tau as f32, (1.0 - tau) as f32);
+    for (name, t) in dst.iter() {
+        let (s, mut d) = (flat(&src[name])?, flat(t)?);
+        for (d, s) in d.iter_mut().zip(&s) {
+            *d = a * s + b * *d;
+        }
+        t.set(&Tensor::from_vec(d, t.shape(), t.device())?)?;
+    }
+    Ok(())
 }
 
 fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
@@ -211,9 +231,22 @@ impl Sac {
             alpha_opt,
             replay,
             rng,
+            par: Par::default(),
             env_steps: 0,
             updates: 0,
         })
+    }
+
+    /// Run the step's pairs of independent work on `threads` threads (1 or 2; the default
+    /// is 1). The step's results do not change.
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        self.par = Par::new(threads).map_err(candle_core::Error::wrap)?;
+        Ok(())
+    }
+
+    /// Threads the step runs on.
+    pub fn threads(&self) -> usize {
+        self.par.threads()
     }
 
     /// The networks by name (for checkpoints).
@@ -313,7 +346,7 @@ impl Sac {
         act: &Tensor,
         y: &Tensor,
     ) -> Result<(Tensor, GradStore)> {
-        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, act)?;
+        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, act, &self.par)?;
         let (e1, e2) = ((q1 - y)?, (q2 - y)?);
         let loss = (e1.sqr()?.mean_all()? + e2.sqr()?.mean_all()?)?;
         let scale = 2.0 / e1.dim(0)? as f64;
@@ -323,22 +356,23 @@ impl Sac {
             [&(e1 * scale)?, &(e2 * scale)?],
             Some(&mut grads),
             false,
+            &self.par,
         )?;
         Ok((loss, grads))
     }
 
-    /// The actor's loss `mean(alpha log pi(a|s) - min(q1, q2)(s, a))` for `a` sampled
-    /// with noise `eps`, the log-probabilities, and the policy's gradients (by hand; the
-    /// critics only pass the gradient on to the action).
-    fn actor_gradients(
+    /// The actor's loss `mean(alpha log pi(a|s) - min(q1, q2)(s, a))` for the policy's
+    /// sample `a` (with its log-probabilities), and that loss's gradient with respect to `a`
+    /// (by hand; the critics only pass it on).
+    fn actor_loss(
         &self,
         obs: &Tensor,
-        eps: &Tensor,
+        a: &Tensor,
+        logp: &Tensor,
         alpha: f64,
-    ) -> Result<(Tensor, Tensor, GradStore)> {
-        let (a, logp, tape) = self.policy.net.sample_taped(obs, eps)?;
-        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, &a)?;
-        let loss = ((&logp * alpha)? - q1.minimum(&q2)?)?.mean_all()?;
+    ) -> Result<(Tensor, Tensor)> {
+        let ((q1, q2), tapes) = self.critic.net.forward_taped(obs, a, &self.par)?;
+        let loss = ((logp * alpha)? - q1.minimum(&q2)?)?.mean_all()?;
         // d/dq of -mean(min(q1, q2)): to the smaller one, halved on a tie (as candle).
         let n = q1.dim(0)? as f64;
         let (lt, tie) = (
@@ -351,17 +385,29 @@ impl Sac {
         let da = self
             .critic
             .net
-            .backward(&tapes, [&dq1, &dq2], None, true)?
+            .backward(&tapes, [&dq1, &dq2], None, true, &self.par)?
             .ok_or_else(|| candle_core::Error::Msg("no action gradient".into()))?;
+        Ok((loss, da))
+    }
+
+    /// The policy's gradients of the actor's loss, from the sample's tape and the loss's
+    /// gradient `da` with respect to the sampled action.
+    fn policy_gradients(&self, tape: &PolicyTape, da: &Tensor, alpha: f64) -> Result<GradStore> {
         let mut grads = GradStore::default();
+        let dlogp = alpha / da.dim(0)? as f64;
         self.policy
             .net
-            .backward_sample(&tape, &da, alpha / n, &mut grads)?;
-        Ok((loss, logp, grads))
+            .backward_sample(tape, da, dlogp, &mut grads, &self.par)?;
+        Ok(grads)
     }
 
     /// One gradient step on critics, actor and temperature, then the target update.
     /// `reward` forms the reward of the drawn minibatch (`[n, 1]`) from what its rows hold.
+    ///
+    /// With two threads ([`Sac::set_threads`]) the pairs of independent work run side by
+    /// side: the policy on the next states and on the states, the two critics (forward and
+    /// backward), and the target update beside the policy's backward pass. Every piece sees
+    /// the same inputs as in one thread, so the step is the same to the bit.
     pub fn update(&mut self, reward: impl FnOnce(&Batch) -> Result<Tensor>) -> Result<SacLosses> {
         let n = self.cfg.batch;
         let batch = self.replay.sample(&mut self.rng, n)?;
@@ -379,50 +425,44 @@ impl Sac {
             ..
         } = batch;
         let alpha = self.alpha()?;
+        // The noise of the targets' actions, then of the actor's.
+        let (eps_next, eps) = (self.noise(n)?, self.noise(n)?);
+
+        // The policy on both minibatches: it changes only after the critics, so the actor's
+        // sample is drawn now.
+        let (policy, obs_a) = (self.policy.net.clone(), obs.clone());
+        let (next, sample) = self.par.join(
+            || self.policy.net.sample(&next_obs, &eps_next),
+            move || policy.sample_taped(&obs_a, &eps),
+        );
+        let ((a_next, logp_next), (a, logp, tape)) = (next?, sample?);
 
         // Targets, without gradients.
-        let eps = self.noise(n)?;
-        let (a_next, logp_next) = self.policy.net.sample(&next_obs, &eps)?;
-        let (q1n, q2n) = self.target.net.forward(&next_obs, &a_next)?;
+        let (q1n, q2n) = self.target.net.forward(&next_obs, &a_next, &self.par)?;
         let y = soft_q_target(&rew, &done, &q1n, &q2n, &logp_next, alpha, self.cfg.gamma)?.detach();
 
         // Critics, then the actor through the updated critics.
         let (critic_loss, grads) = self.critic_gradients(&obs, &act, &y)?;
         self.q_opt.step(&grads)?;
-        let eps = self.noise(n)?;
-        let (actor_loss, logp, grads) = self.actor_gradients(&obs, &eps, alpha)?;
-        self.pi_opt.step(&grads)?;
+        let (actor_loss, da) = self.actor_loss(&obs, &a, &logp, alpha)?;
+        // The policy's gradients beside the target update (they share nothing).
+        let (critic, target, tau) = (
+            self.critic.varmap.clone(),
+            self.target.varmap.clone(),
+            self.cfg.tau,
+        );
+        let (grads, polyak) = self.par.join(
+            || self.policy_gradients(&tape, &da, alpha),
+            move || polyak(&critic, &target, tau),
+        );
+        self.pi_opt.step(&grads?)?;
+        polyak?;
 
         // Temperature.
         let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.act_dim as f64));
         let alpha_loss = temperature_loss(self.log_alpha.as_tensor(), &logp, target_entropy)?;
         self.alpha_opt.step(&alpha_loss.backward()?)?;
 
-        // Polyak: target <- tau * critic + (1 - tau) * target.
-        let tau = self.cfg.tau;
-        {
-            let src = self
-                .critic
-                .varmap
-                .data()
-                .lock()
-                .map_err(|_| candle_core::Error::Msg("poisoned".into()))?;
-            let dst = self
-                .target
-                .varmap
-                .data()
-                .lock()
-                .map_err(|_| candle_core::Error::Msg("poisoned".into()))?;
-            let flat = |t: &Var| t.flatten_all()?.to_vec1::<f32>();
-            let (a, b) = (tau as f32, (1.0 - tau) as f32);
-            for (name, t) in dst.iter() {
-                let (s, mut d) = (flat(&src[name])?, flat(t)?);
-                for (d, s) in d.iter_mut().zip(&s) {
-                    *d = a * s + b * *d;
-                }
-                t.set(&Tensor::from_vec(d, t.shape(), t.device())?)?;
-            }
-        }
         self.updates += 1;
         let scalar = |t: &Tensor| -> Result<f32> { t.to_dtype(DType::F32)?.to_scalar::<f32>() };
         Ok(SacLosses {
@@ -522,6 +562,74 @@ mod tests {
     }
 
     #[test]
+    fn two_threads_take_the_same_steps_to_the_bit() {
+        let cfg = SacConfig {
+            hidden: vec![32, 24],
+            batch: 64,
+            random_steps: 0,
+            update_every: 1,
+            seed: 5,
+            ..SacConfig::default()
+        };
+        let mut t = uniform_tensors(4);
+        let obs = t(201, 5, 2.0)
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let actions = t(200, 2, 0.99)
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let truth = t(200, 1, 1.0)
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let traj = Trajectory {
+            format: pbrl_common::trajectory::TRAJECTORY_FORMAT,
+            obs_dim: 5,
+            act_dim: 2,
+            obs,
+            actions,
+            rewards: truth
+                .iter()
+                .map(|&r| pbrl_common::StepRewards {
+                    truth: r,
+                    ..Default::default()
+                })
+                .collect(),
+            ..Trajectory::default()
+        };
+        let weights = |threads: usize| {
+            let mut sac = Sac::new(cfg.clone(), 5, 2).unwrap();
+            sac.set_threads(threads).unwrap();
+            assert_eq!(sac.threads(), threads);
+            sac.observe(&traj);
+            let losses: Vec<SacLosses> = (0..20)
+                .map(|_| sac.update(|b| Ok(b.truth.clone())).unwrap())
+                .collect();
+            let nets: Vec<Vec<(String, Vec<f32>)>> = sac
+                .networks()
+                .iter()
+                .map(|(_, vm)| {
+                    pbrl_common::nets::named_vars(vm)
+                        .unwrap()
+                        .into_iter()
+                        .map(|(n, v)| (n, v.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+                        .collect()
+                })
+                .collect();
+            (losses, nets, sac.alpha().unwrap())
+        };
+        let (one, two) = (weights(1), weights(2));
+        assert_eq!(one.0, two.0, "the losses of every step");
+        assert_eq!(one.1, two.1, "policy, critics and targets");
+        assert_eq!(one.2, two.2, "the temperature");
+    }
+
+    #[test]
     fn hand_gradients_of_both_losses_are_candle_autodiffs() {
         let cfg = SacConfig {
             hidden: vec![16, 12],
@@ -534,7 +642,7 @@ mod tests {
         let (obs, act, y, eps) = (t(32, 5, 2.0), t(32, 2, 0.99), t(32, 1, 3.0), t(32, 2, 1.5));
 
         let (loss, got) = sac.critic_gradients(&obs, &act, &y).unwrap();
-        let (q1, q2) = sac.critic.net.forward(&obs, &act).unwrap();
+        let (q1, q2) = sac.critic.net.forward(&obs, &act, &sac.par).unwrap();
         let want = ((q1 - &y).unwrap().sqr().unwrap().mean_all().unwrap()
             + (q2 - &y).unwrap().sqr().unwrap().mean_all().unwrap())
         .unwrap();
@@ -546,9 +654,11 @@ mod tests {
 
         // A temperature that weighs the log-probability as much as the critics do.
         let alpha = 0.7;
-        let (loss, logp, got) = sac.actor_gradients(&obs, &eps, alpha).unwrap();
+        let (a, logp, tape) = sac.policy.net.sample_taped(&obs, &eps).unwrap();
+        let (loss, da) = sac.actor_loss(&obs, &a, &logp, alpha).unwrap();
+        let got = sac.policy_gradients(&tape, &da, alpha).unwrap();
         let (a, want_logp) = sac.policy.net.sample(&obs, &eps).unwrap();
-        let (q1, q2) = sac.critic.net.forward(&obs, &a).unwrap();
+        let (q1, q2) = sac.critic.net.forward(&obs, &a, &sac.par).unwrap();
         let want = ((&want_logp * alpha).unwrap() - q1.minimum(&q2).unwrap())
             .unwrap()
             .mean_all()

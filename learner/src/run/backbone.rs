@@ -102,16 +102,18 @@ pub enum BackboneState {
 
 impl Backbone {
     pub fn new(cfg: &LearnerConfig) -> Result<Self> {
+        let threads = cfg.learner_threads;
         Ok(match cfg.algo {
-            Algo::Sac => Backbone::Sac(Box::new(Sac::new(
-                cfg.sac.clone(),
-                cfg.obs_dim,
-                cfg.act_dim,
-            )?)),
-            Algo::Ppo => Backbone::Ppo(
-                Box::new(Ppo::new(cfg.ppo.clone(), cfg.obs_dim, cfg.act_dim)?),
-                Vec::new(),
-            ),
+            Algo::Sac => {
+                let mut sac = Sac::new(cfg.sac.clone(), cfg.obs_dim, cfg.act_dim)?;
+                sac.set_threads(threads)?;
+                Backbone::Sac(Box::new(sac))
+            }
+            Algo::Ppo => {
+                let mut ppo = Ppo::new(cfg.ppo.clone(), cfg.obs_dim, cfg.act_dim)?;
+                ppo.set_threads(threads)?;
+                Backbone::Ppo(Box::new(ppo), Vec::new())
+            }
         })
     }
 
