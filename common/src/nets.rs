@@ -131,7 +131,12 @@ impl Mlp {
             };
             let dx = match grads.as_deref_mut() {
                 Some(g) => {
-                    let (dx, wg) = par.join(input_grad, weight_grads);
+                    // NOTE: beside each other only when there are two products to run.
+                    let (dx, wg) = if wants_dx {
+                        par.join(input_grad, weight_grads)
+                    } else {
+                        (Ok(None), weight_grads())
+                    };
                     let (dw, db) = wg?;
                     g.insert(l.weight(), dw);
                     if let (Some(b), Some(db)) = (l.bias(), db) {

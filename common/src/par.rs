@@ -79,7 +79,8 @@ impl Par {
             let _ = tx.send(catch_unwind(AssertUnwindSafe(b)));
         });
         if let Err(mpsc::SendError(job)) = jobs.send(job) {
-            // NOTE: the helper is gone only after a panic it already reported; run here.
+            // NOTE: cannot happen while `self` holds the sender (the helper catches every
+            // panic of a job and goes on); run the piece here all the same.
             job();
         }
         let ra = a();

@@ -571,22 +571,10 @@ mod tests {
             seed: 5,
             ..SacConfig::default()
         };
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let mut t = uniform_tensors(4);
-        let obs = t(201, 5, 2.0)
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap();
-        let actions = t(200, 2, 0.99)
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap();
-        let truth = t(200, 1, 1.0)
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap();
+        let (obs, actions) = (flat(&t(201, 5, 2.0)), flat(&t(200, 2, 0.99)));
+        let truth = flat(&t(200, 1, 1.0));
         let traj = Trajectory {
             format: pbrl_common::trajectory::TRAJECTORY_FORMAT,
             obs_dim: 5,
@@ -617,7 +605,7 @@ mod tests {
                     pbrl_common::nets::named_vars(vm)
                         .unwrap()
                         .into_iter()
-                        .map(|(n, v)| (n, v.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+                        .map(|(n, v)| (n, flat(v.as_tensor())))
                         .collect()
                 })
                 .collect();
