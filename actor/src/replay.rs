@@ -76,11 +76,37 @@ pub struct Frames {
 #[derive(Clone, Debug, Serialize)]
 pub struct Scene {
     pub steps: usize,
+    /// The frame where the judged segment starts; the frames before it are its lead-in
+    /// (0 for a whole episode).
+    pub segment_from: usize,
     pub views: Vec<SceneView>,
     /// Outlines by view name.
     pub shapes: std::collections::BTreeMap<&'static str, Vec<Outline>>,
     pub head_radius: f32,
     pub frames: Frames,
+}
+
+impl Scene {
+    /// Only the segment of steps `start .. start + len`, with up to `lead_in` steps
+    /// before it: frames `start - lead_in ..= start + len` (clamped to the episode).
+    pub fn cut(&mut self, start: usize, len: usize, lead_in: usize) {
+        let from = start.saturating_sub(lead_in).min(self.steps);
+        let to = (start + len).min(self.steps);
+        let f = &mut self.frames;
+        fn keep<T>(v: &mut Vec<T>, from: usize, to: usize) {
+            if from <= to && to < v.len() {
+                v.truncate(to + 1);
+                v.drain(..from);
+            }
+        }
+        keep(&mut f.arm, from, to);
+        keep(&mut f.spoon, from, to);
+        keep(&mut f.head, from, to);
+        keep(&mut f.mouth, from, to);
+        keep(&mut f.food, from, to);
+        self.steps = to - from;
+        self.segment_from = start.min(to) - from;
+    }
 }
 
 fn p3(p: &Point3<f64>) -> [f32; 3] {
@@ -148,6 +174,7 @@ pub fn scene(t: &Trajectory, world: &WorldConfig) -> Result<Scene> {
     }
     Ok(Scene {
         steps: t.steps(),
+        segment_from: 0,
         views,
         shapes,
         head_radius: person.head_radius as f32,
@@ -160,6 +187,29 @@ mod tests {
     use super::*;
     use crate::controller::Controller;
     use crate::rollout::run_episode;
+
+    #[test]
+    fn a_cut_scene_keeps_the_segment_and_its_lead_in() {
+        let cfg = WorldConfig::default();
+        let mut world = FeedingWorld::new(cfg.clone()).unwrap();
+        let mut c = Controller::new(crate::controller::ControllerKind::Random);
+        let t = run_episode(&mut world, &mut c, 3).unwrap();
+        let whole = scene(&t, &cfg).unwrap();
+        for (start, len, lead, from, segment_from) in [
+            (100, 50, 10, 90, 10),
+            (4, 50, 10, 0, 4),
+            (180, 50, 10, 170, 10),
+        ] {
+            let mut s = whole.clone();
+            s.cut(start, len, lead);
+            let to = (start + len).min(t.steps());
+            assert_eq!(s.steps, to - from, "{start}");
+            assert_eq!(s.segment_from, segment_from, "{start}");
+            assert_eq!(s.frames.spoon.len(), to - from + 1);
+            assert_eq!(s.frames.spoon[..], whole.frames.spoon[from..=to]);
+            assert_eq!(s.frames.food[..], whole.frames.food[from..=to]);
+        }
+    }
 
     #[test]
     fn an_episode_replays_exactly_from_its_seed_and_actions() {

@@ -135,6 +135,8 @@ pub fn evaluate(
                         obs: t.obs[..n * t.obs_dim as usize].to_vec(),
                         actions: t.actions.clone(),
                         truth: t.rewards.iter().map(|r| r.truth).collect(),
+                        human: t.rewards.iter().map(|r| r.human).collect(),
+                        task: t.rewards.iter().map(|r| r.task).collect(),
                     });
                 }
                 Ok(t.outcome)

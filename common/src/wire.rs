@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
 /// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 6;
+pub const WIRE_FORMAT: u16 = 7;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -99,6 +99,10 @@ pub struct EvalSteps {
     pub actions: Vec<f32>,
     /// The ground-truth reward r of each step.
     pub truth: Vec<f32>,
+    /// Its two parts the learnt reward is judged against: the person's preference reward
+    /// r_H and the task reward r_task of each step.
+    pub human: Vec<f32>,
+    pub task: Vec<f32>,
 }
 
 /// The outcome of each evaluation episode, in the order of the request's seeds.
@@ -144,12 +148,28 @@ pub struct Shown {
     /// What a person needs to watch the episode (absent for tasks with nothing to draw,
     /// or when the learner is not asked to send it).
     pub replay: Option<Replay>,
+    /// The segment judged: steps `start .. start + len` of the trajectory (the whole
+    /// trajectory is `0, steps`). The actions and the truth are the whole trajectory's,
+    /// so that the episode replays from its seed up to the segment.
+    pub start: u32,
+    pub len: u32,
 }
 
 impl Shown {
     /// Env steps of the trajectory.
     pub fn steps(&self) -> usize {
         self.truth.len()
+    }
+
+    /// The steps judged (`start .. start + len`, clamped to the trajectory).
+    pub fn segment(&self) -> std::ops::Range<usize> {
+        let start = (self.start as usize).min(self.steps());
+        start..(start + self.len as usize).min(self.steps())
+    }
+
+    /// The ground-truth reward of the segment's steps.
+    pub fn segment_truth(&self) -> &[f32] {
+        &self.truth[self.segment()]
     }
 }
 
@@ -167,6 +187,11 @@ pub struct Query {
     pub expires_at_ms: u64,
     pub first: Shown,
     pub second: Shown,
+    /// R_avg of the scripted teachers' thresholds: the mean ground-truth return of the
+    /// newest 100 training episodes when the session was asked (whole episodes; a teacher
+    /// scales it to the segment's length), fixed for the session as in the authors' code.
+    /// None where the learner had no episodes (a teacher then keeps its own window).
+    pub r_avg: Option<f32>,
 }
 
 /// A teacher's judgement of a query.
@@ -443,10 +468,21 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                         });
                     }
                 }
+                for (name, xs) in [("human", &e.human), ("task", &e.task)] {
+                    if xs.len() != e.truth.len() {
+                        return Err(WireError::Shape {
+                            field: format!("steps[{k}].{name}"),
+                            found: xs.len(),
+                            expected: e.truth.len(),
+                        });
+                    }
+                }
                 if e.obs
                     .iter()
                     .chain(&e.actions)
                     .chain(&e.truth)
+                    .chain(&e.human)
+                    .chain(&e.task)
                     .any(|x| !x.is_finite())
                 {
                     return Err(WireError::NonFinite {
@@ -470,6 +506,18 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                         field: format!("{side}.truth or {side}.actions"),
                     });
                 }
+                if s.len == 0 || s.start as u64 + s.len as u64 > s.steps() as u64 {
+                    return Err(WireError::Invalid {
+                        field: format!("{side}.start, {side}.len"),
+                        value: format!("{}, {} of {} steps", s.start, s.len, s.steps()),
+                        reason: "the segment must hold at least one step of the trajectory",
+                    });
+                }
+            }
+            if q.r_avg.is_some_and(|r| !r.is_finite()) {
+                return Err(WireError::NonFinite {
+                    field: "r_avg".into(),
+                });
             }
         }
         Body::Answer(a) => {
@@ -492,6 +540,110 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
         Body::Status(_) => {}
     }
     Ok(env.body)
+}
+
+/// A query as a label store keeps it (the encoded message of an open query): this build's
+/// format, or format 6's (before segments), read as whole-trajectory segments with no
+/// R_avg, so that a store of an older build still asks its open queries.
+pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> {
+    // NOTE: the envelope starts with its format; a format-6 body does not decode as
+    // this build's, so the format is read first.
+    let format = bincode::serde::decode_from_slice::<u16, _>(bytes, bincode::config::standard())
+        .map(|(f, _)| f)
+        .ok();
+    match if format == Some(6) {
+        Err(WireError::Format {
+            found: 6,
+            expected: WIRE_FORMAT,
+        })
+    } else {
+        decode(run, bytes)
+    } {
+        Ok(Body::Query(q)) => Ok(*q),
+        Ok(_) => Err(WireError::Decode("the message is not a query".into())),
+        Err(WireError::Format { found: 6, .. }) => {
+            let ((format, found_run, variant, q), _): ((u16, String, u32, v6::Query), usize) =
+                bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+                    .map_err(|e| WireError::Decode(e.to_string()))?;
+            // NOTE: format 6's Body listed Query sixth (index 5), as this one does.
+            if format != 6 || variant != 5 {
+                return Err(WireError::Decode(format!(
+                    "a format-6 message of body {variant} is not a query"
+                )));
+            }
+            if found_run != run {
+                return Err(WireError::Run {
+                    found: found_run,
+                    expected: run.to_string(),
+                });
+            }
+            let body = Body::Query(Box::new(q.upgrade()));
+            // Validated as this build validates a query it receives.
+            match decode(run, &encode(run, &body))? {
+                Body::Query(q) => Ok(*q),
+                _ => unreachable!("a query encodes and decodes as a query"),
+            }
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Format 6's query (before segments and the session's R_avg), to read open queries that
+/// a label store of an older build holds.
+mod v6 {
+    use super::*;
+
+    #[derive(Deserialize)]
+    pub struct Shown {
+        id: u64,
+        seed: u64,
+        policy_version: u64,
+        act_dim: u32,
+        actions: Vec<f32>,
+        truth: Vec<f32>,
+        replay: Option<Replay>,
+    }
+
+    #[derive(Deserialize)]
+    pub struct Query {
+        id: u64,
+        session: u64,
+        asked_at_ms: u64,
+        expires_at_ms: u64,
+        first: Shown,
+        second: Shown,
+    }
+
+    impl Shown {
+        fn upgrade(self) -> super::Shown {
+            let len = self.truth.len() as u32;
+            super::Shown {
+                id: self.id,
+                seed: self.seed,
+                policy_version: self.policy_version,
+                act_dim: self.act_dim,
+                actions: self.actions,
+                truth: self.truth,
+                replay: self.replay,
+                start: 0,
+                len,
+            }
+        }
+    }
+
+    impl Query {
+        pub fn upgrade(self) -> super::Query {
+            super::Query {
+                id: self.id,
+                session: self.session,
+                asked_at_ms: self.asked_at_ms,
+                expires_at_ms: self.expires_at_ms,
+                first: self.first.upgrade(),
+                second: self.second.upgrade(),
+                r_avg: None,
+            }
+        }
+    }
 }
 
 impl Weights {
@@ -607,6 +759,8 @@ mod tests {
             obs: vec![0.5; obs],
             actions: vec![0.1; act],
             truth: vec![-1.0; truth],
+            human: vec![-0.5; truth],
+            task: vec![-0.5; truth],
         };
         let result = |s: Vec<EvalSteps>| {
             Body::EvalResult(EvalResult {
@@ -648,7 +802,105 @@ mod tests {
             actions: vec![0.5; 2 * steps],
             truth: vec![-1.0; steps],
             replay: None,
+            start: 0,
+            len: steps as u32,
         }
+    }
+
+    #[test]
+    fn a_segment_outside_its_trajectory_is_refused() {
+        let query = |first: Shown| {
+            Body::Query(Box::new(Query {
+                id: 3,
+                session: 1,
+                asked_at_ms: 1,
+                expires_at_ms: 0,
+                first,
+                second: shown(2, 4),
+                r_avg: Some(-80.0),
+            }))
+        };
+        let mut s = shown(1, 4);
+        (s.start, s.len) = (1, 2);
+        assert_eq!(s.segment(), 1..3);
+        assert_eq!(s.segment_truth().len(), 2);
+        let ok = query(s.clone());
+        assert_eq!(decode("r", &encode("r", &ok)).unwrap(), ok);
+        for (start, len) in [(3, 2), (0, 0), (4, 1)] {
+            (s.start, s.len) = (start, len);
+            let e = decode("r", &encode("r", &query(s.clone()))).unwrap_err();
+            assert!(e.to_string().contains("first.start"), "{start}, {len}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_format_6_query_reads_as_whole_trajectories() {
+        // Format 6's layout, written field by field as bincode writes serde's structs.
+        #[derive(Serialize)]
+        struct Shown6 {
+            id: u64,
+            seed: u64,
+            policy_version: u64,
+            act_dim: u32,
+            actions: Vec<f32>,
+            truth: Vec<f32>,
+            replay: Option<Replay>,
+        }
+        #[derive(Serialize)]
+        struct Query6 {
+            id: u64,
+            session: u64,
+            asked_at_ms: u64,
+            expires_at_ms: u64,
+            first: Shown6,
+            second: Shown6,
+        }
+        let side = |id: u64| Shown6 {
+            id,
+            seed: 7,
+            policy_version: 2,
+            act_dim: 2,
+            actions: vec![0.5; 8],
+            truth: vec![-1.0; 4],
+            replay: None,
+        };
+        let q6 = Query6 {
+            id: 3,
+            session: 1,
+            asked_at_ms: 1,
+            expires_at_ms: 0,
+            first: side(1),
+            second: side(2),
+        };
+        let bytes =
+            bincode::serde::encode_to_vec((6u16, "r", 5u32, &q6), bincode::config::standard())
+                .unwrap();
+        assert!(
+            decode("r", &bytes).is_err(),
+            "this build does not speak format 6"
+        );
+        let q = decode_stored_query("r", &bytes).unwrap();
+        assert_eq!(
+            q,
+            Query {
+                id: 3,
+                session: 1,
+                asked_at_ms: 1,
+                expires_at_ms: 0,
+                first: shown(1, 4),
+                second: shown(2, 4),
+                r_avg: None,
+            }
+        );
+        assert!(matches!(
+            decode_stored_query("other", &bytes),
+            Err(WireError::Run { .. })
+        ));
+        // Format 6's answer (body 6) is not a query.
+        let answer =
+            bincode::serde::encode_to_vec((6u16, "r", 6u32, &q6), bincode::config::standard())
+                .unwrap();
+        assert!(decode_stored_query("r", &answer).is_err());
     }
 
     #[test]
@@ -660,6 +912,7 @@ mod tests {
             expires_at_ms: 0,
             first: shown(1, 4),
             second: shown(2, 4),
+            r_avg: None,
         }));
         assert_eq!(decode("r", &encode("r", &q)).unwrap(), q);
         let mut bad = shown(1, 4);
@@ -675,6 +928,7 @@ mod tests {
                     expires_at_ms: 0,
                     first: shown(1, 4),
                     second: bad,
+                    r_avg: None,
                 })),
             ),
         )

@@ -569,7 +569,7 @@ impl Desk {
         let shadow = self
             .cfg
             .shadow
-            .then(|| self.oracle.answer(&q.first.truth, &q.second.truth));
+            .then(|| crate::teacher::judge_query(&mut self.oracle, &q));
         Answer {
             query,
             preference,
@@ -794,6 +794,8 @@ pub(crate) mod tests {
             actions: vec![0.0; 2],
             truth: vec![r, r],
             replay: None,
+            start: 0,
+            len: 2,
         };
         Query {
             id,
@@ -802,6 +804,7 @@ pub(crate) mod tests {
             expires_at_ms: 0,
             first: side(0, first),
             second: side(1, second),
+            r_avg: None,
         }
     }
 

@@ -315,6 +315,8 @@ mod tests {
             actions: vec![0.0],
             truth: vec![0.0],
             replay: None,
+            start: 0,
+            len: 1,
         };
         Query {
             id,
@@ -323,6 +325,7 @@ mod tests {
             expires_at_ms: 0,
             first: side.clone(),
             second: side,
+            r_avg: None,
         }
     }
 

@@ -201,13 +201,54 @@ impl Scripted {
         // NOTE: both returns join the window before judging, so R_avg includes this pair.
         self.remember(r0);
         self.remember(r1);
-        let cfg = &self.cfg;
         // `remember` just pushed two returns and avg_window >= 1, so the window is not empty.
         let r_avg = self.r_avg().expect("the window holds this pair's returns");
-        let scale = r_avg - cfg.r_min;
+        self.judge_returns(first, second, r_avg, 1.0)
+    }
+
+    /// Judge two segments with the session's R_avg, as the authors' code does: R_avg is
+    /// the mean ground-truth return of the newest training episodes when the session was
+    /// asked (the learner's, carried by the query), and `fraction` is the segments' share
+    /// of an episode (segment length over episode length): the thresholds compare
+    /// segment returns with `(R_avg - r_min) * fraction * delta`, the skip threshold's
+    /// floor is `r_min * fraction`. With whole trajectories (`fraction` 1) this is
+    /// [`Scripted::answer`] with R_avg fixed for the session instead of the window.
+    pub fn answer_in_session(
+        &mut self,
+        first: &[f32],
+        second: &[f32],
+        r_avg: f64,
+        fraction: f64,
+    ) -> Preference {
+        let (r0, r1) = (sum(first), sum(second));
+        if first.is_empty()
+            || second.is_empty()
+            || !r0.is_finite()
+            || !r1.is_finite()
+            || !r_avg.is_finite()
+            || fraction <= 0.0
+            || fraction > 1.0
+            || fraction.is_nan()
+        {
+            return Preference::Skip;
+        }
+        self.judge_returns(first, second, r_avg, fraction)
+    }
+
+    fn judge_returns(
+        &mut self,
+        first: &[f32],
+        second: &[f32],
+        r_avg: f64,
+        fraction: f64,
+    ) -> Preference {
+        let (r0, r1) = (sum(first), sum(second));
+        let cfg = &self.cfg;
+        let r_min = cfg.r_min * fraction;
+        let scale = (r_avg - cfg.r_min) * fraction;
 
         // 1. Skip when even the better trajectory is poor.
-        if cfg.delta_skip > 0.0 && r0.max(r1) - cfg.r_min < scale * cfg.delta_skip {
+        if cfg.delta_skip > 0.0 && r0.max(r1) - r_min < scale * cfg.delta_skip {
             return Preference::Skip;
         }
         // 2. Equal when the (undiscounted) returns are close.
@@ -537,6 +578,48 @@ mod tests {
         assert_eq!(words(&t), 4);
         assert_eq!(t.answer(&[-10.0], &[-10.5]), Equal);
         assert_eq!(words(&t), 4);
+    }
+
+    #[test]
+    fn in_a_session_the_thresholds_scale_the_sessions_r_avg_to_the_segment() {
+        // The authors' thresholds: R_avg of the session (the newest training episodes,
+        // -100 a whole episode), scaled by the segment's share of an episode (50 of 200);
+        // with r_min -350: floor -87.5, scale 62.5, so skip below -87.5 + 6.25 = -81.25
+        // and equal within 6.25.
+        let mut skip = table(TeacherKind::Skip);
+        assert_eq!(
+            skip.answer_in_session(&[-82.0], &[-85.0], -100.0, 0.25),
+            Preference::Skip
+        );
+        assert_eq!(
+            skip.answer_in_session(&[-81.0], &[-85.0], -100.0, 0.25),
+            Preference::First
+        );
+        let mut equal = table(TeacherKind::Equal);
+        assert_eq!(
+            equal.answer_in_session(&[-50.0], &[-56.2], -100.0, 0.25),
+            Preference::Equal
+        );
+        assert_eq!(
+            equal.answer_in_session(&[-50.0], &[-56.3], -100.0, 0.25),
+            Preference::First
+        );
+        // Whole trajectories (fraction 1): the window's rule with R_avg fixed. The window
+        // is not touched by a session's answers.
+        assert_eq!(
+            equal.answer_in_session(&[-100.0], &[-124.0], -100.0, 1.0),
+            Preference::Equal
+        );
+        assert_eq!(equal.r_avg(), None);
+        // Nothing to judge by: skipped.
+        assert_eq!(
+            equal.answer_in_session(&[-1.0], &[-2.0], f64::NAN, 1.0),
+            Preference::Skip
+        );
+        assert_eq!(
+            equal.answer_in_session(&[-1.0], &[-2.0], -100.0, 0.0),
+            Preference::Skip
+        );
     }
 
     #[test]

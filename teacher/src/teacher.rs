@@ -55,7 +55,21 @@ impl Judge for Scripted {
     }
 
     fn judge(&mut self, q: &Query) -> Preference {
-        self.answer(&q.first.truth, &q.second.truth)
+        judge_query(self, q)
+    }
+}
+
+/// A scripted teacher's judgement of a query's two segments: with the session's R_avg
+/// where the query carries one (the learner's newest training episodes, as the authors'
+/// code), else with the teacher's own window of returns shown.
+pub fn judge_query(t: &mut Scripted, q: &Query) -> Preference {
+    let (a, b) = (q.first.segment_truth(), q.second.segment_truth());
+    match q.r_avg {
+        Some(r_avg) => {
+            let steps = q.first.steps().max(1) as f64;
+            t.answer_in_session(a, b, r_avg as f64, a.len() as f64 / steps)
+        }
+        None => t.answer(a, b),
     }
 }
 

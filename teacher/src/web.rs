@@ -206,7 +206,8 @@ fn status_json(desk: &Desk, labeller: Option<&str>) -> serde_json::Value {
     })
 }
 
-/// Replay a query's side and check that the replay is the episode the learner sent.
+/// Replay a query's side and check that the replay is the episode the learner sent (every
+/// step's truth, the segment's among them); keep the segment and its lead-in.
 fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
     let t = resimulate(world, s.seed, &s.actions)?;
     let differs = t
@@ -221,8 +222,17 @@ fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
             s.seed
         );
     }
-    scene(&t, world)
+    let mut drawn = scene(&t, world)?;
+    let seg = s.segment();
+    if seg.len() < s.steps() {
+        drawn.cut(seg.start, seg.len(), LEAD_IN_STEPS);
+    }
+    Ok(drawn)
 }
+
+/// Steps of the episode shown before a segment (a second at the world's 10 steps a
+/// second), so that a person sees where the judged part starts.
+pub const LEAD_IN_STEPS: usize = 10;
 
 async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response {
     let Some(labeller) = who.labeller else {
@@ -346,4 +356,70 @@ pub async fn bind(cfg: &HttpConfig) -> Result<tokio::net::TcpListener> {
     tokio::net::TcpListener::bind(cfg.addr)
         .await
         .with_context(|| format!("listening on {} for the labelling page", cfg.addr))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pbrl_actor::controller::{Controller, ControllerKind};
+    use pbrl_actor::rollout::run_episode;
+    use pbrl_actor::FeedingWorld;
+
+    /// One side of a query showing steps `start .. start + len` of a random episode.
+    fn side(world: &WorldConfig, seed: u64, start: u32, len: u32) -> ShownTrajectory {
+        let mut w = FeedingWorld::new(world.clone()).unwrap();
+        let mut c = Controller::new(ControllerKind::Random);
+        let t = run_episode(&mut w, &mut c, seed).unwrap();
+        ShownTrajectory {
+            id: 1,
+            seed,
+            policy_version: 1,
+            act_dim: t.act_dim,
+            actions: t.actions.clone(),
+            truth: t.rewards.iter().map(|r| r.truth).collect(),
+            replay: None,
+            start,
+            len,
+        }
+    }
+
+    #[test]
+    fn a_segment_is_replayed_from_its_seed_and_shown_with_its_lead_in() {
+        let world = WorldConfig::default();
+        let s = side(&world, 5, 120, 50);
+        let scene = draw(&world, &s).unwrap();
+        assert_eq!(scene.steps, LEAD_IN_STEPS + 50);
+        assert_eq!(scene.segment_from, LEAD_IN_STEPS);
+        assert_eq!(scene.frames.spoon.len(), LEAD_IN_STEPS + 51);
+        // The frames are the episode's own: the same as the whole replay's, cut.
+        let whole = draw(
+            &world,
+            &ShownTrajectory {
+                start: 0,
+                len: 200,
+                ..s.clone()
+            },
+        )
+        .unwrap();
+        assert_eq!(whole.segment_from, 0);
+        assert_eq!(scene.frames.spoon[..], whole.frames.spoon[110..=170]);
+        // A segment at the start has what lead-in there is.
+        let early = draw(
+            &world,
+            &ShownTrajectory {
+                start: 3,
+                ..s.clone()
+            },
+        )
+        .unwrap();
+        assert_eq!((early.segment_from, early.steps), (3, 53));
+        // A truth that is not the episode's, in the segment, is refused.
+        let mut wrong = s.clone();
+        wrong.truth[130] += 1.0;
+        let e = draw(&world, &wrong).unwrap_err();
+        assert!(
+            format!("{e:#}").contains("not the episode the learner sent"),
+            "{e:#}"
+        );
+    }
 }

@@ -201,6 +201,16 @@ pub fn small_pref(
     let p = &mut cfg.pref;
     (p.unsup_steps, p.feedback_interval) = (first, every);
     (p.queries_per_session, p.max_feedback) = (per_session, budget);
+    // NOTE: the tests' own small schedules: whole trajectories, fixed session sizes, no
+    // label-efficiency pieces unless a test turns them on.
+    (
+        p.segment_len,
+        p.query_recent,
+        p.feedback_span,
+        p.pseudo_pairs,
+    ) = (0, 0, 0, 0);
+    p.model.crops = 0;
+    cfg.sac.hybrid_share = 0.0;
     p.candidate_factor = 5;
     (p.annotation_capacity, p.knn_pool) = (buffer, pool);
 }

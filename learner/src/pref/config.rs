@@ -11,6 +11,10 @@ fn default_max_open() -> u64 {
     200
 }
 
+fn one() -> f64 {
+    1.0
+}
+
 /// Preference learning (`shared/method.md` sections 1-5). The defaults are PEBBLE's; the
 /// PPO backbone's (PrefPPO) apply where the user did not set a value ([`ppo_preset`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
@@ -35,9 +39,22 @@ pub struct PrefConfig {
     /// Queries in all (the budget; skipped ones count). Then the reward model is frozen.
     #[arg(long, default_value_t = 50_000)]
     pub max_feedback: u64,
-    /// Queries asked per feedback session.
+    /// Queries asked per feedback session (with `--feedback-span`, the budget's schedule
+    /// sets each session's size instead).
     #[arg(long, default_value_t = 100)]
     pub queries_per_session: u64,
+    /// Spread the whole budget (`--max-feedback`) over the feedback sessions of this many
+    /// env steps after the pretraining (0: `--queries-per-session` each session until the
+    /// budget is spent). A person's budget is then asked while it can still shape the
+    /// policy, whatever its size.
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub feedback_span: u64,
+    /// With `--feedback-span`: each session asks this share of the one before (1: all
+    /// alike; below 1: more and earlier, then fewer).
+    #[arg(long, default_value_t = 1.0)]
+    #[serde(default = "one")]
+    pub feedback_decay: f64,
     /// Env steps between feedback sessions.
     #[arg(long, default_value_t = 6_000)]
     pub feedback_interval: u64,
@@ -70,13 +87,128 @@ pub struct PrefConfig {
     #[arg(long, default_value_t = 200)]
     #[serde(default = "default_max_open")]
     pub max_open_queries: u64,
+    /// Steps of each side of a query: a segment of each trajectory (B-Pref: 50; 0, the
+    /// default until the feeding grids pick one: whole trajectories; a trajectory shorter
+    /// than this is shown whole). One label then says which of two short stretches was
+    /// better, which gives the reward model credit near the steps that made the difference.
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub segment_len: usize,
+    /// Where a segment starts: uniform over the trajectory (B-Pref), or at its end.
+    #[arg(long, value_enum, default_value = "uniform")]
+    #[serde(default)]
+    pub segment_start: SegmentStart,
+    /// Candidate pairs come from the newest this-many trajectories of the annotation
+    /// buffer (QPA's policy-aligned queries: the person judges what the policy does now;
+    /// 0: the whole buffer, B-Pref).
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub query_recent: usize,
+    /// Unlabelled pairs drawn at each training of the ensemble (after the first) and
+    /// trained on with the ensemble's own answer where it is sure (SURF's pseudo-labels;
+    /// 0: off). They are never stored and never count against the budget.
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub pseudo_pairs: usize,
+    /// How sure the ensemble must be for a pseudo-label: its mean P of the preferred side
+    /// at least this (SURF: 0.95 to 0.99).
+    #[arg(long, default_value_t = 0.95)]
+    #[serde(default = "pseudo_tau")]
+    pub pseudo_tau: f64,
     #[command(flatten)]
     pub model: RewardModelConfig,
+}
+
+fn pseudo_tau() -> f64 {
+    0.95
+}
+
+/// Where a query's segment starts in its trajectory.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum SegmentStart {
+    /// Uniform over the starts that fit (B-Pref), drawn for each side apart.
+    #[default]
+    Uniform,
+    /// The trajectory's last steps (where a feeding attempt meets the mouth).
+    End,
+}
+
+impl PrefConfig {
+    /// Queries session `session` (1, 2, ...) asks with `asked` asked before it: with a
+    /// span, the budget's share of the sessions so far less what was asked (a late or
+    /// short session's queries come later; after the span, all that is left); else
+    /// `queries_per_session`. Never more than the budget leaves.
+    pub fn session_queries(&self, session: u64, asked: u64) -> u64 {
+        let left = self.max_feedback.saturating_sub(asked);
+        if self.feedback_span == 0 {
+            return self.queries_per_session.min(left);
+        }
+        let sessions = self.feedback_span / self.feedback_interval.max(1) + 1;
+        if session >= sessions {
+            return left;
+        }
+        let d = self.feedback_decay;
+        let weight = |k: u64| d.powi(k as i32);
+        let total: f64 = (0..sessions).map(weight).sum();
+        let upto: f64 = (0..session).map(weight).sum();
+        let target = (self.max_feedback as f64 * upto / total).round() as u64;
+        target.saturating_sub(asked).min(left)
+    }
 }
 
 impl Default for PrefConfig {
     /// Every field at its flag's default.
     fn default() -> Self {
         crate::flags::defaults()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_budget_schedule_spends_the_budget_within_its_span_front_first() {
+        let cfg = |span, decay| PrefConfig {
+            max_feedback: 200,
+            feedback_interval: 6_000,
+            feedback_span: span,
+            feedback_decay: decay,
+            ..PrefConfig::default()
+        };
+        // No span: the fixed session size until the budget is spent.
+        let fixed = cfg(0, 1.0);
+        assert_eq!(fixed.session_queries(1, 0), 100);
+        assert_eq!(fixed.session_queries(3, 150), 50);
+        // 114,000 env steps at 6,000 a session: 20 sessions of 10.
+        let even = cfg(114_000, 1.0);
+        let mut asked = 0;
+        let sizes: Vec<u64> = (1..=20)
+            .map(|s| {
+                let k = even.session_queries(s, asked);
+                asked += k;
+                k
+            })
+            .collect();
+        assert_eq!(sizes, vec![10; 20]);
+        assert_eq!(even.session_queries(21, asked), 0, "the budget is spent");
+        // Front-loaded: each session 0.8 of the one before, all 200 within the span.
+        let front = cfg(114_000, 0.8);
+        let mut asked = 0;
+        let sizes: Vec<u64> = (1..=20)
+            .map(|s| {
+                let k = front.session_queries(s, asked);
+                asked += k;
+                k
+            })
+            .collect();
+        assert_eq!(asked, 200);
+        assert_eq!(sizes[0], 40, "{sizes:?}");
+        assert!(sizes.windows(2).all(|w| w[0] + 1 >= w[1]), "{sizes:?}");
+        // A session that asked too few (the open bound): the next makes it up.
+        assert_eq!(even.session_queries(2, 4), 16);
+        // Past the span: everything left.
+        assert_eq!(even.session_queries(25, 150), 50);
     }
 }

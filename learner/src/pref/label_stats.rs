@@ -62,6 +62,9 @@ pub struct LabelStats {
     pub labellers: Vec<LabellerStats>,
     /// Two labellers' answers to the same query, by pair of names.
     pub between: BTreeMap<(String, String), Agreement>,
+    /// Labels of D by the length of the segments they compare (steps; a whole
+    /// trajectory's length for the queries of a store before segments).
+    pub segment_steps: BTreeMap<u64, u64>,
 }
 
 /// Read the statistics of the label store at `path` (read-only: safe while the run goes).
@@ -88,6 +91,15 @@ pub fn stats(path: &Path) -> Result<LabelStats> {
         .and_then(|mut s| {
             s.query_map([], |r| {
                 Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?))
+            })?
+            .collect()
+        })
+        .with_context(context)?;
+    let segment_steps: BTreeMap<u64, u64> = db
+        .prepare("SELECT first_len, count(*) FROM labels GROUP BY first_len")
+        .and_then(|mut s| {
+            s.query_map([], |r| {
+                Ok((r.get::<_, i64>(0)? as u64, r.get::<_, i64>(1)? as u64))
             })?
             .collect()
         })
@@ -147,7 +159,11 @@ pub fn stats(path: &Path) -> Result<LabelStats> {
             s
         })
         .collect();
-    Ok(LabelStats { labellers, between })
+    Ok(LabelStats {
+        labellers,
+        between,
+        segment_steps,
+    })
 }
 
 /// The statistics as a person reads them.
@@ -178,6 +194,14 @@ pub fn report(s: &LabelStats) -> String {
             pct(&l.consistency),
             pct(&l.oracle),
         );
+    }
+    if !s.segment_steps.is_empty() {
+        let parts: Vec<String> = s
+            .segment_steps
+            .iter()
+            .map(|(steps, n)| format!("{n} of {steps} steps"))
+            .collect();
+        out += &format!("\nlabels by segment length: {}\n", parts.join(", "));
     }
     if !s.between.is_empty() {
         out += "\nagreement between labellers (the same query):\n";
@@ -220,6 +244,7 @@ mod tests {
             act_dim: 1,
             obs: &obs,
             actions: &actions,
+            segment: (0, 2),
         };
         let mut ids = Vec::new();
         for k in 0..4 {
@@ -229,8 +254,15 @@ mod tests {
                     "uniform",
                     0,
                     0,
-                    &traj(2 * k),
-                    &traj(2 * k + 1),
+                    // NOTE: the last query compares one-step segments.
+                    &StoredTrajectory {
+                        segment: if k == 3 { (1, 1) } else { (0, 2) },
+                        ..traj(2 * k)
+                    },
+                    &StoredTrajectory {
+                        segment: if k == 3 { (0, 1) } else { (0, 2) },
+                        ..traj(2 * k + 1)
+                    },
                     |_, _, _| vec![1],
                 )
                 .unwrap();
@@ -277,5 +309,8 @@ mod tests {
         assert!((ann.per_minute().unwrap() - 20.0).abs() < 1e-9);
         let text = report(&s);
         assert!(text.contains("ann") && text.contains("50% of 2"), "{text}");
+        // Four labels: three of whole 2-step trajectories, one of 1-step segments.
+        assert_eq!(s.segment_steps, [(1, 1), (2, 3)].into());
+        assert!(text.contains("1 of 1 steps, 3 of 2 steps"), "{text}");
     }
 }

@@ -12,11 +12,14 @@
 //! observation at which each action was taken and the action as the policy gave it.
 //!
 //! ```text
-//! meta          key, value: `run` (the run's name) and `schema` (this layout, 2)
+//! meta          key, value: `run` (the run's name) and `schema` (this layout, 3)
 //! trajectories  id, actor, incarnation, seq (unique: the actor's numbering), seed,
 //!               policy_version, steps, obs_dim, act_dim,
 //!               obs (steps x obs_dim f32, little-endian), actions (steps x act_dim)
 //! queries       id, session, sampler, env_steps, first, second (trajectory ids),
+//!               first_start, first_len, second_start, second_len (the segment of each
+//!               trajectory the query compares: steps start .. start + len; NULL in a
+//!               store of schema 2 or older, where queries compared whole trajectories),
 //!               asked_at_ms, message (the encoded query while it is open, else NULL),
 //!               answer (NULL while open; first, second, equal, skip or expired),
 //!               teacher, teacher_id, took_ms, answered_at_ms,
@@ -28,7 +31,8 @@
 //!               replays_second, shadow, answered_at_ms: queries asked again of a person
 //!               (the same one or another) to measure consistency; not part of D
 //! labels        a view: the answered queries (first, second, equal) with both
-//!               trajectories' policy versions, seeds and lengths, in answer order
+//!               trajectories' policy versions, seeds and lengths and both segments'
+//!               bounds (whole trajectories for older queries), in answer order
 //! ```
 //!
 //! Ids come from `AUTOINCREMENT`, so they are never reused: a query id is unique over the
@@ -60,7 +64,7 @@ use pbrl_common::wire::{Answer, Preference};
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 
 /// The layout this build writes and reads (`meta.schema`).
-pub const SCHEMA: u32 = 2;
+pub const SCHEMA: u32 = 3;
 
 const CREATE: &str = "
 CREATE TABLE meta (
@@ -88,6 +92,10 @@ CREATE TABLE queries (
     env_steps INTEGER NOT NULL,
     first INTEGER NOT NULL REFERENCES trajectories (id),
     second INTEGER NOT NULL REFERENCES trajectories (id),
+    first_start INTEGER,
+    first_len INTEGER,
+    second_start INTEGER,
+    second_len INTEGER,
     asked_at_ms INTEGER NOT NULL,
     message BLOB,
     answer TEXT CHECK (answer IN ('first', 'second', 'equal', 'skip', 'expired')),
@@ -116,7 +124,18 @@ DROP VIEW IF EXISTS labels;
 UPDATE meta SET value = '2' WHERE key = 'schema';
 ";
 
-const REPEATS_AND_VIEW: &str = "
+/// What schema 3 added to schema 2: each query's segments (NULL for the older queries,
+/// which compared whole trajectories); the view is made again with them.
+const MIGRATE_2_TO_3: &str = "
+ALTER TABLE queries ADD COLUMN first_start INTEGER;
+ALTER TABLE queries ADD COLUMN first_len INTEGER;
+ALTER TABLE queries ADD COLUMN second_start INTEGER;
+ALTER TABLE queries ADD COLUMN second_len INTEGER;
+DROP VIEW IF EXISTS labels;
+UPDATE meta SET value = '3' WHERE key = 'schema';
+";
+
+const REPEATS: &str = "
 CREATE TABLE repeats (
     query INTEGER NOT NULL REFERENCES queries (id),
     teacher_id TEXT NOT NULL,
@@ -129,6 +148,9 @@ CREATE TABLE repeats (
     answered_at_ms INTEGER NOT NULL,
     PRIMARY KEY (query, teacher_id, labeller)
 );
+";
+
+const VIEW: &str = "
 CREATE VIEW labels AS
 SELECT q.id AS query, q.session, q.sampler, q.env_steps, q.answer, q.teacher, q.teacher_id,
        q.took_ms, q.asked_at_ms, q.answered_at_ms, q.labeller, q.replays_first,
@@ -136,8 +158,11 @@ SELECT q.id AS query, q.session, q.sampler, q.env_steps, q.answer, q.teacher, q.
        datetime(q.answered_at_ms / 1000, 'unixepoch') AS answered_at, q.answer_no,
        q.first, a.policy_version AS first_policy_version, a.seed AS first_seed,
        a.steps AS first_steps,
+       coalesce(q.first_start, 0) AS first_start, coalesce(q.first_len, a.steps) AS first_len,
        q.second, b.policy_version AS second_policy_version, b.seed AS second_seed,
-       b.steps AS second_steps
+       b.steps AS second_steps,
+       coalesce(q.second_start, 0) AS second_start,
+       coalesce(q.second_len, b.steps) AS second_len
 FROM queries q
 JOIN trajectories a ON a.id = q.first
 JOIN trajectories b ON b.id = q.second
@@ -165,6 +190,9 @@ pub struct StoredTrajectory<'a> {
     pub obs: &'a [f32],
     /// `steps` rows of `act_dim`, as the policy gave them.
     pub actions: &'a [f32],
+    /// The segment the query compares: steps `start .. start + len` (`(0, steps)`: the
+    /// whole trajectory). Kept with the query; the trajectory is stored whole.
+    pub segment: (usize, usize),
 }
 
 impl StoredTrajectory<'_> {
@@ -197,6 +225,13 @@ impl StoredTrajectory<'_> {
                 self.key(),
                 self.obs.len(),
                 self.obs_dim
+            );
+        }
+        let (start, len) = self.segment;
+        if len == 0 || start + len > steps {
+            bail!(
+                "{side} trajectory {}: segment start {start}, length {len} is not within its {steps} steps",
+                self.key()
             );
         }
         Ok(())
@@ -270,6 +305,10 @@ pub struct LabelRow {
     /// The trajectories' ids (see [`LabelStore::segment`]).
     pub first: u64,
     pub second: u64,
+    /// The segments compared, `(start, len)` in each trajectory (whole trajectories for
+    /// the queries of an older store).
+    pub first_segment: (usize, usize),
+    pub second_segment: (usize, usize),
     /// First, Second or Equal (never Skip).
     pub preference: Preference,
     pub answered_at_ms: u64,
@@ -379,7 +418,7 @@ impl LabelStore {
             })
             .with_context(|| format!("listing the tables of {}", path.display()))?;
         if tables.is_empty() {
-            tx.execute_batch(&format!("{CREATE}{REPEATS_AND_VIEW}"))
+            tx.execute_batch(&format!("{CREATE}{REPEATS}{VIEW}"))
                 .with_context(|| {
                     format!("creating the tables of label store {}", path.display())
                 })?;
@@ -407,8 +446,15 @@ impl LabelStore {
         if schema == "1" {
             // NOTE: a store of an older build (its run resumed by this one) gains the
             // columns of a person's answers and the repeats; nothing it holds changes.
-            tx.execute_batch(&format!("{MIGRATE_1_TO_2}{REPEATS_AND_VIEW}"))
+            tx.execute_batch(&format!("{MIGRATE_1_TO_2}{REPEATS}"))
                 .with_context(|| format!("upgrading label store {} to schema 2", path.display()))?;
+            schema = "2".into();
+        }
+        if schema == "2" {
+            // NOTE: the queries of an older build compared whole trajectories: their
+            // segments stay NULL and read as the whole trajectory.
+            tx.execute_batch(&format!("{MIGRATE_2_TO_3}{VIEW}"))
+                .with_context(|| format!("upgrading label store {} to schema 3", path.display()))?;
             schema = SCHEMA.to_string();
         }
         if schema != SCHEMA.to_string() {
@@ -465,15 +511,20 @@ impl LabelStore {
         // NOTE: the message needs the query's id, which the insert draws: the row holds an
         // empty message until the update below, in the same transaction.
         tx.execute(
-            "INSERT INTO queries (session, sampler, env_steps, first, second, asked_at_ms, message)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, zeroblob(0))",
+            "INSERT INTO queries (session, sampler, env_steps, first, second, asked_at_ms, message,
+                 first_start, first_len, second_start, second_len)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, zeroblob(0), ?7, ?8, ?9, ?10)",
             params![
                 int(session),
                 sampler,
                 int(env_steps),
                 int(first_id),
                 int(second_id),
-                int(asked_at_ms)
+                int(asked_at_ms),
+                first.segment.0 as i64,
+                first.segment.1 as i64,
+                second.segment.0 as i64,
+                second.segment.1 as i64,
             ],
         )
         .with_context(context)?;
@@ -687,10 +738,15 @@ impl LabelStore {
         let mut stmt = self
             .conn
             .prepare(
-                "SELECT answer_no, id, session, first, second, answer, answered_at_ms
-                 FROM queries
-                 WHERE answer IN ('first', 'second', 'equal') AND answer_no > ?1
-                 ORDER BY answer_no",
+                "SELECT q.answer_no, q.id, q.session, q.first, q.second, q.answer,
+                        q.answered_at_ms,
+                        coalesce(q.first_start, 0), coalesce(q.first_len, a.steps),
+                        coalesce(q.second_start, 0), coalesce(q.second_len, b.steps)
+                 FROM queries q
+                 JOIN trajectories a ON a.id = q.first
+                 JOIN trajectories b ON b.id = q.second
+                 WHERE q.answer IN ('first', 'second', 'equal') AND q.answer_no > ?1
+                 ORDER BY q.answer_no",
             )
             .with_context(context)?;
         let rows = stmt
@@ -703,6 +759,12 @@ impl LabelStore {
                     uint(r.get(4)?),
                     r.get::<_, String>(5)?,
                     uint(r.get(6)?),
+                    [
+                        r.get::<_, i64>(7)?,
+                        r.get::<_, i64>(8)?,
+                        r.get::<_, i64>(9)?,
+                        r.get::<_, i64>(10)?,
+                    ],
                 ))
             })
             .with_context(context)?
@@ -710,19 +772,22 @@ impl LabelStore {
             .with_context(context)?;
         rows.into_iter()
             .map(
-                |(answer_no, query, session, first, second, answer, answered_at_ms)| {
+                |(answer_no, query, session, first, second, answer, answered_at_ms, bounds)| {
                     let preference = Preference::parse(&answer).with_context(|| {
                         format!(
                             "query {query} in {} has answer {answer:?}",
                             self.path.display()
                         )
                     })?;
+                    let [a0, a1, b0, b1] = bounds.map(|x| x.max(0) as usize);
                     Ok(LabelRow {
                         answer_no,
                         query,
                         session,
                         first,
                         second,
+                        first_segment: (a0, a1),
+                        second_segment: (b0, b1),
                         preference,
                         answered_at_ms,
                     })
@@ -886,6 +951,7 @@ mod tests {
             act_dim: ACT_DIM,
             obs: &t.obs,
             actions: &t.actions,
+            segment: (0, t.actions.len() / ACT_DIM),
         }
     }
 
@@ -968,6 +1034,8 @@ mod tests {
                 session: 1,
                 first: q1.first,
                 second: q1.second,
+                first_segment: (0, a.actions.len() / ACT_DIM),
+                second_segment: (0, b.actions.len() / ACT_DIM),
                 preference: Preference::Second,
                 answered_at_ms: 2_000 + q1.query,
             }]
@@ -1105,6 +1173,10 @@ mod tests {
              ALTER TABLE queries DROP COLUMN replays_first;
              ALTER TABLE queries DROP COLUMN replays_second;
              ALTER TABLE queries DROP COLUMN shadow;
+             ALTER TABLE queries DROP COLUMN first_start;
+             ALTER TABLE queries DROP COLUMN first_len;
+             ALTER TABLE queries DROP COLUMN second_start;
+             ALTER TABLE queries DROP COLUMN second_len;
              CREATE VIEW labels AS SELECT id AS query FROM queries;
              UPDATE meta SET value = '1' WHERE key = 'schema';",
         )
@@ -1126,6 +1198,69 @@ mod tests {
             })
             .unwrap();
         assert_eq!(schema, SCHEMA.to_string());
+        let rows = store.labels_since(0).unwrap();
+        assert_eq!(
+            (rows[0].first_segment, rows[0].second_segment),
+            ((0, 3), (0, 3))
+        );
+    }
+
+    #[test]
+    fn a_schema_2_store_reads_its_queries_as_whole_trajectories_and_stores_segments() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("labels.sqlite");
+        let q = left_behind(&path, Some(Preference::Second));
+        // Back to the layout of schema 2, as the build before segments wrote it.
+        let conn = Connection::open(&path).unwrap();
+        conn.execute_batch(
+            "DROP VIEW labels;
+             ALTER TABLE queries DROP COLUMN first_start;
+             ALTER TABLE queries DROP COLUMN first_len;
+             ALTER TABLE queries DROP COLUMN second_start;
+             ALTER TABLE queries DROP COLUMN second_len;
+             CREATE VIEW labels AS SELECT id AS query FROM queries;
+             UPDATE meta SET value = '2' WHERE key = 'schema';",
+        )
+        .unwrap();
+        drop(conn);
+        let mut store = LabelStore::open(&path, "run").unwrap();
+        let rows = store.labels_since(0).unwrap();
+        assert_eq!(rows.len(), 1);
+        assert_eq!(rows[0].query, q.query);
+        assert_eq!(rows[0].preference, Preference::Second);
+        assert_eq!(
+            (rows[0].first_segment, rows[0].second_segment),
+            ((0, 3), (0, 3))
+        );
+        // A new query compares segments; they come back with its label and in the view.
+        let (a, b) = (traj(0, 7, 5), traj(1, 7, 5));
+        let (mut sa, mut sb) = (stored(&a), stored(&b));
+        (sa.segment, sb.segment) = ((1, 3), (2, 3));
+        let asked = store.ask(2, "uniform", 10, 5, &sa, &sb, message).unwrap();
+        answer(&mut store, asked.query, Preference::First);
+        let rows = store.labels_since(rows[0].answer_no).unwrap();
+        assert_eq!(
+            (rows[0].first_segment, rows[0].second_segment),
+            ((1, 3), (2, 3))
+        );
+        let view: Vec<(i64, i64, i64, i64)> = store
+            .conn
+            .prepare("SELECT first_start, first_len, second_start, second_len FROM labels")
+            .unwrap()
+            .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))
+            .unwrap()
+            .collect::<rusqlite::Result<_>>()
+            .unwrap();
+        assert_eq!(view, vec![(0, 3, 0, 3), (1, 3, 2, 3)]);
+        // A segment outside its trajectory is refused, named.
+        sa.segment = (3, 3);
+        let e = store
+            .ask(2, "uniform", 10, 5, &sa, &sb, message)
+            .unwrap_err();
+        assert!(
+            format!("{e:#}").contains("segment start 3, length 3"),
+            "{e:#}"
+        );
     }
 
     #[test]

@@ -168,9 +168,19 @@ impl Replay {
         }
     }
 
-    /// A uniform minibatch.
-    pub(crate) fn sample(&self, rng: &mut impl Rng, n: usize) -> Result<Batch> {
-        let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..self.len)).collect();
+    /// A minibatch of `n`: `recent.0` of them uniform over the newest `recent.1`
+    /// transitions (QPA's hybrid replay; `(0, _)`: none), the rest uniform over the buffer.
+    pub(crate) fn sample(
+        &self,
+        rng: &mut impl Rng,
+        n: usize,
+        recent: (usize, usize),
+    ) -> Result<Batch> {
+        let (k, window) = (recent.0.min(n), recent.1.clamp(1, self.len.max(1)));
+        let mut idx: Vec<usize> = (0..n - k).map(|_| rng.random_range(0..self.len)).collect();
+        // NOTE: the newest transition sits just before `next` in the ring.
+        let cap = self.capacity;
+        idx.extend((0..k).map(|_| (self.next + cap - 1 - rng.random_range(0..window)) % cap));
         let rows = |src: &[f32], w: usize| -> Result<Tensor> {
             let mut out = Vec::with_capacity(n * w);
             for &i in &idx {
@@ -192,6 +202,35 @@ impl Replay {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_hybrid_minibatch_takes_its_share_from_the_newest_transitions() {
+        use rand::SeedableRng;
+        let mut r = Replay::new(1, 1, 50);
+        // 130 transitions through a ring of 50: it holds 80..130, the newest 10 are 120..130.
+        for k in 0..130 {
+            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false);
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let b = r.sample(&mut rng, 64, (16, 10)).unwrap();
+        let obs = b.obs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(obs.iter().all(|&x| (80.0..130.0).contains(&x)));
+        // The last 16 rows are the hybrid share: all among the newest 10.
+        assert!(obs[48..].iter().all(|&x| x >= 120.0), "{:?}", &obs[48..]);
+        let old = obs[..48].iter().filter(|&&x| x < 120.0).count();
+        assert!(
+            old > 30,
+            "the uniform part spans the buffer: {old} of 48 older"
+        );
+        // Not full yet: the newest are just below `len`.
+        let mut r = Replay::new(1, 1, 50);
+        for k in 0..20 {
+            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false);
+        }
+        let b = r.sample(&mut rng, 8, (8, 5)).unwrap();
+        let obs = b.obs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(obs.iter().all(|&x| (15.0..20.0).contains(&x)), "{obs:?}");
+    }
 
     #[test]
     fn a_replay_buffer_restored_from_its_rows_is_the_same_buffer() {

@@ -85,6 +85,25 @@ pub struct SacConfig {
     #[arg(id = "sac_lambda_scale", long = "sac-lambda-scale")]
     #[serde(default)]
     pub lambda_scale: bool,
+    /// SAC, while labels are still asked: this share of each minibatch comes from the
+    /// newest `--sac-hybrid-steps` transitions, the rest from the whole buffer (QPA's
+    /// hybrid experience replay: the policy improves where the queries are asked; 0: off).
+    #[arg(
+        id = "sac_hybrid_share",
+        long = "sac-hybrid-share",
+        default_value_t = 0.0
+    )]
+    #[serde(default)]
+    pub hybrid_share: f64,
+    /// SAC: the newest transitions the hybrid share draws from (QPA: the last 10
+    /// episodes, 2,000 feeding steps).
+    #[arg(
+        id = "sac_hybrid_steps",
+        long = "sac-hybrid-steps",
+        default_value_t = 2_000
+    )]
+    #[serde(default = "hybrid_steps")]
+    pub hybrid_steps: usize,
     /// Seed of initialisation, minibatches and sampling noise (the run's `--seed`).
     #[arg(skip)]
     pub seed: u64,
@@ -92,6 +111,10 @@ pub struct SacConfig {
 
 fn one() -> f64 {
     1.0
+}
+
+fn hybrid_steps() -> usize {
+    2_000
 }
 
 impl Default for SacConfig {
@@ -153,6 +176,8 @@ pub struct Sac {
     pub env_steps: u64,
     /// Gradient steps taken.
     pub updates: u64,
+    /// Labels are still asked: minibatches take their hybrid share (`hybrid_share`).
+    pub hybrid: bool,
 }
 
 /// SAC's state beside its networks and replay buffer.
@@ -234,6 +259,7 @@ impl Sac {
             par: Par::default(),
             env_steps: 0,
             updates: 0,
+            hybrid: false,
         })
     }
 
@@ -410,7 +436,15 @@ impl Sac {
     /// the same inputs as in one thread, so the step is the same to the bit.
     pub fn update(&mut self, reward: impl FnOnce(&Batch) -> Result<Tensor>) -> Result<SacLosses> {
         let n = self.cfg.batch;
-        let batch = self.replay.sample(&mut self.rng, n)?;
+        let recent = if self.hybrid && self.cfg.hybrid_share > 0.0 {
+            (
+                (self.cfg.hybrid_share.min(1.0) * n as f64).round() as usize,
+                self.cfg.hybrid_steps,
+            )
+        } else {
+            (0, 0)
+        };
+        let batch = self.replay.sample(&mut self.rng, n, recent)?;
         let rew = reward(&batch)?;
         let rew = if self.cfg.reward_scale == 1.0 {
             rew

@@ -170,8 +170,28 @@ impl LearnerConfig {
         if p.queries_per_session == 0 {
             return bad("queries_per_session", &0, "must be at least 1");
         }
+        let h = self.sac.hybrid_share;
+        if !(0.0..=1.0).contains(&h) {
+            return bad("sac_hybrid_share", &h, "must be in [0, 1]");
+        }
+        if self.sac.hybrid_steps == 0 {
+            return bad("sac_hybrid_steps", &0, "must be at least 1");
+        }
+        if !(p.pseudo_tau > 0.5 && p.pseudo_tau <= 1.0) {
+            return bad("pseudo_tau", &p.pseudo_tau, "must be in (0.5, 1]");
+        }
+        let (lo, hi) = (p.model.crop_min, p.model.crop_max);
+        if !(lo > 0.0 && lo <= 1.0) {
+            return bad("reward_crop_min", &lo, "must be in (0, 1]");
+        }
+        if !(hi >= lo && hi <= 1.0) {
+            return bad("reward_crop_max", &hi, "must be in [reward_crop_min, 1]");
+        }
         if p.feedback_interval == 0 {
             return bad("feedback_interval", &0, "must be at least 1");
+        }
+        if !(p.feedback_decay.is_finite() && p.feedback_decay > 0.0 && p.feedback_decay <= 1.0) {
+            return bad("feedback_decay", &p.feedback_decay, "must be in (0, 1]");
         }
         if p.candidate_factor == 0 {
             return bad("candidate_factor", &0, "must be at least 1");

@@ -104,6 +104,11 @@ columns! {
         labels_open: u64 => "{}",
         waiting_labels: u8 => "{}",
         labellers: u64 => "{}",
+        /// Per-step correlation of r_hat, on the evaluation episodes, with the preference
+        /// part r_H alone and with the task part r_task (the truth r = robot + r_H; NaN
+        /// before a model).
+        rhat_step_corr_human: f64 => "{:.4}",
+        rhat_step_corr_task: f64 => "{:.4}",
     }
 }
 
@@ -157,6 +162,8 @@ impl CurveRow {
             labels_open: 0,
             waiting_labels: 0,
             labellers: 0,
+            rhat_step_corr_human: nan,
+            rhat_step_corr_task: nan,
         }
     }
 }
@@ -387,7 +394,11 @@ impl Curve {
     /// Fill in an evaluation's figures, then write every row that is complete in order.
     /// `tracking`: the learnt reward's correlations with the truth on the evaluation's
     /// episodes (per step, per episode sum), when there is one.
-    pub fn complete(&mut self, r: EvalResult, tracking: Option<(f64, f64)>) -> Result<()> {
+    pub fn complete(
+        &mut self,
+        r: EvalResult,
+        tracking: Option<crate::run::evaluation::Tracking>,
+    ) -> Result<()> {
         let Some(p) = self.pending.iter_mut().find(|p| p.request.id == r.id) else {
             tracing::debug!(id = r.id, "an evaluation answered twice or after its row");
             return Ok(());
@@ -433,9 +444,11 @@ impl Curve {
         p.row.eval_sampled_success_rate = mean(&r.sampled, success);
         p.row.eval_sampled_return_human = mean(&r.sampled, human);
         p.row.eval_version = r.version;
-        if let Some((step, sum)) = tracking {
-            p.row.rhat_step_corr = step;
-            p.row.rhat_return_corr = sum;
+        if let Some(t) = tracking {
+            p.row.rhat_step_corr = t.step;
+            p.row.rhat_return_corr = t.sum;
+            p.row.rhat_step_corr_human = t.step_human;
+            p.row.rhat_step_corr_task = t.step_task;
         }
         self.write_ready()
     }

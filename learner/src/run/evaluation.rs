@@ -85,12 +85,27 @@ pub async fn retry(bus: &LearnerBus, curve: &mut Curve, actors: &mut Actors) -> 
     Ok(asked)
 }
 
+/// How well a learnt reward tracks the ground truth on an evaluation's episodes (Pearson
+/// correlations; NaN where undefined).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tracking {
+    /// r_hat with r, per step.
+    pub step: f64,
+    /// r_hat with the preference part r_H alone, and with the task part r_task, per step.
+    pub step_human: f64,
+    pub step_task: f64,
+    /// Episode sums of r_hat with those of r.
+    pub sum: f64,
+}
+
 /// How well `model` tracks the ground truth on an evaluation's episodes: the Pearson
-/// correlation of r_hat with r per step and per episode sum. Episodes whose lengths do not
-/// agree with the model are left out (with a warning); NaN when none is left.
-pub fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<(f64, f64)> {
+/// correlation of r_hat with r, r_H and r_task per step, and with r per episode sum.
+/// Episodes whose lengths do not agree with the model are left out (with a warning); NaN
+/// when none is left.
+pub fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<Tracking> {
     let (mut step_hat, mut step_true, mut sum_hat, mut sum_true) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut step_human, mut step_task) = (Vec::new(), Vec::new());
     for e in episodes {
         let n = e.truth.len();
         if e.obs.len() != n * model.obs_dim() || e.actions.len() != n * model.act_dim() {
@@ -107,9 +122,21 @@ pub fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<(f64
         sum_true.push(e.truth.iter().map(|x| *x as f64).sum());
         step_hat.extend(r.iter().map(|x| *x as f64));
         step_true.extend(e.truth.iter().map(|x| *x as f64));
+        step_human.extend(e.human.iter().map(|x| *x as f64));
+        step_task.extend(e.task.iter().map(|x| *x as f64));
     }
-    Ok((
-        correlation(&step_hat, &step_true),
-        correlation(&sum_hat, &sum_true),
-    ))
+    // NOTE: the parts are absent from the steps of an older actor: NaN then.
+    let part = |xs: &[f64]| {
+        if xs.len() == step_hat.len() {
+            correlation(&step_hat, xs)
+        } else {
+            f64::NAN
+        }
+    };
+    Ok(Tracking {
+        step: correlation(&step_hat, &step_true),
+        step_human: part(&step_human),
+        step_task: part(&step_task),
+        sum: correlation(&sum_hat, &sum_true),
+    })
 }

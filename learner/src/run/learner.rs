@@ -192,6 +192,13 @@ impl Learner {
             f.observe(&msg);
         }
         self.reward.observe(&msg.trajectory);
+        if let crate::run::backbone::Backbone::Sac(sac) = &mut self.backbone {
+            // NOTE: QPA's hybrid replay holds while labels are still asked.
+            sac.hybrid = match &self.feedback {
+                Some(f) => !f.frozen()?,
+                None => false,
+            };
+        }
         let outcome = msg.trajectory.outcome;
         let steps = msg.trajectory.steps() as u64;
         let observed = self.backbone.observe(

@@ -109,9 +109,40 @@ pub struct RewardModelConfig {
         default_value = "bootstrap"
     )]
     pub resample: Resample,
+    /// Reward ensemble: each label also trains as this many temporal crops of its pair,
+    /// drawn afresh at every training (QPA's and SURF's augmentation: a sub-snippet of
+    /// each side, both the same length, independent starts; 0: off). With
+    /// `--reward-max-pairs` the cost of a training stays the same.
+    #[arg(id = "reward_crops", long = "reward-crops", default_value_t = 0)]
+    #[serde(default)]
+    pub crops: usize,
+    /// Reward ensemble: a crop's length, as shares of the shorter side, drawn uniformly
+    /// in [min, max] (QPA: 35-45 steps of 50).
+    #[arg(
+        id = "reward_crop_min",
+        long = "reward-crop-min",
+        default_value_t = 0.7
+    )]
+    #[serde(default = "crop_min")]
+    pub crop_min: f64,
+    #[arg(
+        id = "reward_crop_max",
+        long = "reward-crop-max",
+        default_value_t = 0.9
+    )]
+    #[serde(default = "crop_max")]
+    pub crop_max: f64,
     /// Seed of initialisation and data orders (the run's `--seed`).
     #[arg(skip)]
     pub seed: u64,
+}
+
+fn crop_min() -> f64 {
+    0.7
+}
+
+fn crop_max() -> f64 {
+    0.9
 }
 
 impl Default for RewardModelConfig {

@@ -489,3 +489,57 @@ fn malformed_segments_and_targets_are_refused() {
     assert_eq!(stats.epochs, 0);
     assert!(!model.trained());
 }
+
+#[test]
+fn crops_are_equal_length_sub_snippets_within_each_side_and_golden_for_a_seed() {
+    // Each step's observation is its own index (side 0: 0..50, side 1: 1000..1050).
+    let side = |base: f32| {
+        Arc::new(Segment {
+            obs: (0..50).map(|k| base + k as f32).collect(),
+            actions: vec![0.0; 50],
+        })
+    };
+    let data = vec![Labelled {
+        first: side(0.0),
+        second: side(1000.0),
+        target: 1.0,
+    }];
+    let cfg = RewardModelConfig {
+        crops: 5,
+        ..small(4, &[8])
+    };
+    let mut model = RewardModel::new(cfg, 1, 1).unwrap();
+    let out = model.with_crops(&data).unwrap();
+    assert_eq!(out.len(), 6, "the label and its 5 crops");
+    assert!(
+        Arc::ptr_eq(&out[0].first, &data[0].first),
+        "the label first, as it was"
+    );
+    let mut got = Vec::new();
+    for c in &out[1..] {
+        let (a, b) = (&c.first.obs, &c.second.obs);
+        assert_eq!(a.len(), b.len(), "both sides one length");
+        assert!((35..=45).contains(&a.len()), "0.7-0.9 of 50: {}", a.len());
+        assert_eq!(c.target, 1.0);
+        for s in [a, b] {
+            assert!(s.windows(2).all(|w| w[1] == w[0] + 1.0), "contiguous steps");
+        }
+        assert!(a[0] >= 0.0 && *a.last().unwrap() < 50.0);
+        assert!(b[0] >= 1000.0 && *b.last().unwrap() < 1050.0);
+        got.push((a.len(), a[0] as usize, b[0] as usize - 1000));
+    }
+    // Golden: the crops a seed draws (a change here changes every run with crops).
+    assert_eq!(got, GOLDEN_CROPS.to_vec());
+    // Bad bounds are refused, named.
+    model.cfg.crop_min = 0.0;
+    let e = model.with_crops(&data).unwrap_err();
+    assert!(e.to_string().contains("reward_crop_min"), "{e}");
+}
+
+const GOLDEN_CROPS: [(usize, usize, usize); 5] = [
+    (36, 14, 12),
+    (36, 13, 3),
+    (40, 7, 10),
+    (45, 0, 4),
+    (45, 0, 1),
+];

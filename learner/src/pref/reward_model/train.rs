@@ -59,6 +59,47 @@ impl RewardModel {
             / q)
     }
 
+    /// `data` and, after it, `crops` temporal crops of each label: both sides cut to one
+    /// length drawn in `[crop_min, crop_max]` of the shorter side (at least one step),
+    /// each at its own uniform start; the label's target goes with them.
+    pub(super) fn with_crops(&mut self, data: &[Labelled]) -> Result<Vec<Labelled>> {
+        let (lo, hi) = (self.cfg.crop_min, self.cfg.crop_max);
+        if !(0.0 < lo && lo <= hi && hi <= 1.0) {
+            candle_core::bail!(
+                "reward_crop_min {lo} and reward_crop_max {hi} must satisfy 0 < min <= max <= 1"
+            );
+        }
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let mut out = data.to_vec();
+        out.reserve(data.len() * self.cfg.crops);
+        for l in data {
+            let (n0, n1) = (self.steps(&l.first)?, self.steps(&l.second)?);
+            let shorter = n0.min(n1) as f64;
+            let (min_len, max_len) = (
+                ((lo * shorter).round() as usize).max(1),
+                ((hi * shorter).round() as usize).max(1),
+            );
+            for _ in 0..self.cfg.crops {
+                let len = self.rng.random_range(min_len..=max_len.max(min_len));
+                let mut cut = |s: &Segment, n: usize| {
+                    let start = self.rng.random_range(0..=n - len);
+                    Arc::new(Segment {
+                        obs: s.obs[start * o..(start + len) * o].to_vec(),
+                        actions: s.actions[start * a..(start + len) * a].to_vec(),
+                    })
+                };
+                let first = cut(&l.first, n0);
+                let second = cut(&l.second, n1);
+                out.push(Labelled {
+                    first,
+                    second,
+                    target: l.target,
+                });
+            }
+        }
+        Ok(out)
+    }
+
     /// Each member's data order for one epoch over `n` pairs, drawn in member order.
     pub(super) fn draw_orders(&mut self, n: usize) -> Vec<Vec<usize>> {
         (0..self.nets.len())
@@ -164,7 +205,7 @@ impl RewardModel {
                 accuracy: 1.0,
             });
         }
-        // Every distinct trajectory once, in D's order.
+        // Every distinct trajectory once, in D's order (the crops below lie within them).
         let mut seen = HashSet::new();
         let segs: Vec<&Segment> = data
             .iter()
@@ -173,6 +214,13 @@ impl RewardModel {
             .map(|s| &**s)
             .collect();
         self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
+        let augmented;
+        let data = if self.cfg.crops > 0 {
+            augmented = self.with_crops(data)?;
+            &augmented[..]
+        } else {
+            data
+        };
 
         let n = data.len();
         let q = self.nets.len() as f64;
