@@ -123,41 +123,49 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
     // steps and then every 17 episodes (510 steps): 1620 and 3150 are publication points.
     // On the ground truth (the backbone alone) and learnt from preferences (the whole
     // loop: the ensemble and its optimiser, the annotation buffer, the label store, the
-    // counters; the first session at 1,200 env steps, the second at 2,700).
-    for (reward, nets) in [
-        ("truth", &["policy", "critic", "target_critic"][..]),
-        (
-            "pref",
-            &[
-                "policy",
-                "critic",
-                "target_critic",
-                "reward_0",
-                "reward_1",
-                "reward_2",
-            ][..],
-        ),
+    // counters; the first session at 1,200 env steps, the second at 2,700). And with the
+    // label-efficiency pieces, each of which draws from a generator the checkpoint keeps:
+    // segments, policy-aligned queries, crops, pseudo-labels and hybrid replay.
+    let pref_nets = &[
+        "policy",
+        "critic",
+        "target_critic",
+        "reward_0",
+        "reward_1",
+        "reward_2",
+    ][..];
+    let efficient = &[
+        "--segment-len=10",
+        "--query-recent=20",
+        "--reward-crops=5",
+        "--pseudo-pairs=20",
+        "--sac-hybrid-share=0.5",
+        "--sac-hybrid-steps=300",
+    ][..];
+    for (reward, nets, extra) in [
+        ("truth", &["policy", "critic", "target_critic"][..], &[][..]),
+        ("pref", pref_nets, &[][..]),
+        ("pref", pref_nets, efficient),
     ] {
         let whole = tempfile::tempdir().unwrap();
         let halves = tempfile::tempdir().unwrap();
         let other = tempfile::tempdir().unwrap();
         let run = |dir: &Path, seed: &str, steps: &str| {
-            let a = train_args(
-                dir,
-                &[
-                    "--sync",
-                    "--actors",
-                    "1",
-                    "--eval-episodes",
-                    "0",
-                    "--reward",
-                    reward,
-                    "--seed",
-                    seed,
-                    "--steps",
-                    steps,
-                ],
-            );
+            let mut flags = vec![
+                "--sync",
+                "--actors",
+                "1",
+                "--eval-episodes",
+                "0",
+                "--reward",
+                reward,
+                "--seed",
+                seed,
+                "--steps",
+                steps,
+            ];
+            flags.extend_from_slice(extra);
+            let a = train_args(dir, &flags);
             let out = pbrl(&a).output().unwrap();
             assert!(
                 out.status.success(),
@@ -178,7 +186,7 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
                 std::fs::read(a.dir.join(&file)).unwrap(),
                 std::fs::read(b.dir.join(&file)).unwrap(),
             );
-            assert!(x == y, "{reward}: {net} differs after the resume");
+            assert!(x == y, "{reward} {extra:?}: {net} differs after the resume");
         }
         if reward == "pref" {
             let labels = |d: &Path| {
@@ -188,11 +196,18 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
                 )
                 .unwrap();
                 let rows = store.labels_since(0).unwrap();
-                (store.counts().unwrap(), rows.len())
+                let segments: Vec<_> = rows
+                    .iter()
+                    .map(|r| (r.first_segment, r.second_segment))
+                    .collect();
+                (store.counts().unwrap(), rows.len(), segments)
             };
-            let (ca, na) = labels(whole.path());
+            let (ca, na, sa) = labels(whole.path());
             assert_eq!(ca.asked, 80, "two sessions of 40: {ca:?}");
-            assert_eq!((ca, na), labels(halves.path()));
+            if !extra.is_empty() {
+                assert!(sa.iter().all(|(a, b)| a.1 == 10 && b.1 == 10), "{sa:?}");
+            }
+            assert_eq!((ca, na, sa), labels(halves.path()));
         }
         // The check can fail: another seed gives other weights.
         let c = run(other.path(), "6", "3150");
