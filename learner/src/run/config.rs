@@ -226,11 +226,34 @@ impl LearnerConfig {
 /// value.
 pub type Setting = (&'static str, &'static str, serde_json::Value);
 
-/// The authors' settings where the defaults differ (`--preset paper`): their network
-/// sizes, their ensemble training unbounded by `max_pairs`, and the linear schedule.
-pub fn paper_preset() -> Vec<Setting> {
+/// The label-efficiency settings off: whole trajectories, queries from the whole
+/// annotation buffer, fixed session sizes, no crops, pseudo-labels or hybrid replay (the
+/// authors' method, and what the presets below keep whatever the defaults become).
+fn label_efficiency_off() -> Vec<Setting> {
     use serde_json::json;
     vec![
+        ("segment_len", "/pref/segment_len", json!(0)),
+        ("query_recent", "/pref/query_recent", json!(0)),
+        ("feedback_span", "/pref/feedback_span", json!(0)),
+        ("pseudo_pairs", "/pref/pseudo_pairs", json!(0)),
+        ("reward_crops", "/pref/model/crops", json!(0)),
+        ("sac_hybrid_share", "/sac/hybrid_share", json!(0.0)),
+    ]
+}
+
+/// The authors' settings where the defaults differ (`--preset paper`): their network
+/// sizes, their ensemble training unbounded by `max_pairs`, the linear schedule, their
+/// budget (50,000 queries, 100 a session) and whole-trajectory queries.
+pub fn paper_preset() -> Vec<Setting> {
+    use serde_json::json;
+    let mut v = label_efficiency_off();
+    v.extend([
+        ("max_feedback", "/pref/max_feedback", json!(50_000)),
+        (
+            "queries_per_session",
+            "/pref/queries_per_session",
+            json!(100),
+        ),
         ("sac_hidden", "/sac/hidden", json!([512, 512])),
         ("sac_batch", "/sac/batch", json!(512)),
         ("ppo_hidden", "/ppo/hidden", json!([512, 512])),
@@ -241,14 +264,17 @@ pub fn paper_preset() -> Vec<Setting> {
         ),
         ("reward_max_pairs", "/pref/model/max_pairs", json!(0)),
         ("lambda_schedule", "/pref/lambda_schedule", json!("linear")),
-    ]
+    ]);
+    v
 }
 
 /// PrefPPO's preference settings (`shared/method.md` sections 3 and 5), applied with the
-/// PPO backbone.
+/// PPO backbone (whole-trajectory queries: the label-efficiency pieces are measured with
+/// SAC only).
 pub fn ppo_preset() -> Vec<Setting> {
     use serde_json::json;
-    vec![
+    let mut v = label_efficiency_off();
+    v.extend([
         ("lambda0", "/pref/lambda0", json!(1.0)),
         ("lambda_schedule", "/pref/lambda_schedule", json!("linear")),
         ("max_feedback", "/pref/max_feedback", json!(10_000)),
@@ -262,7 +288,8 @@ pub fn ppo_preset() -> Vec<Setting> {
         // NOTE: PPO's sessions come about 3 s apart (16,000 env steps at ~5,000 a second);
         // a 4,096-pair training (about 4 s) would hold every session back.
         ("reward_max_pairs", "/pref/model/max_pairs", json!(1024)),
-    ]
+    ]);
+    v
 }
 
 /// The point task (made for tests) learns in seconds with small networks and short
@@ -270,7 +297,8 @@ pub fn ppo_preset() -> Vec<Setting> {
 pub fn point_preset(horizon: u32) -> Vec<Setting> {
     use serde_json::json;
     let rollout = 32 * horizon;
-    vec![
+    let mut v = label_efficiency_off();
+    v.extend([
         ("sac_hidden", "/sac/hidden", json!([64, 64])),
         ("sac_batch", "/sac/batch", json!(64)),
         ("ppo_hidden", "/ppo/hidden", json!([64, 64])),
@@ -292,7 +320,8 @@ pub fn point_preset(horizon: u32) -> Vec<Setting> {
             "/pref/annotation_capacity",
             json!(1_000),
         ),
-    ]
+    ]);
+    v
 }
 
 /// Set each of `settings` the user did not give on the command line (`explicit` holds
@@ -490,5 +519,16 @@ mod tests {
         cfg.pref.rho = 1.5;
         let e = cfg.validate().unwrap_err().to_string();
         assert!(e.contains("rho is 1.5"), "{e}");
+        let refused = |f: &dyn Fn(&mut LearnerConfig), want: &str| {
+            let mut cfg = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
+            f(&mut cfg);
+            let e = cfg.validate().unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+        };
+        refused(&|c| c.sac.hybrid_share = 1.5, "sac_hybrid_share is 1.5");
+        refused(&|c| c.pref.model.crop_min = 0.0, "reward_crop_min is 0");
+        refused(&|c| c.pref.model.crop_max = 0.5, "reward_crop_max is 0.5");
+        refused(&|c| c.pref.pseudo_tau = 0.4, "pseudo_tau is 0.4");
+        refused(&|c| c.pref.feedback_decay = 0.0, "feedback_decay is 0");
     }
 }
