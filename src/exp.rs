@@ -434,11 +434,14 @@ fn report(out: &Path, cells: &[Cell], running: &[Running]) {
         } else {
             "time left unknown".to_string()
         };
+        let success = if success.is_finite() {
+            format!("eval success {:.0}%", 100.0 * success)
+        } else {
+            "no evaluation yet".to_string()
+        };
         println!(
-            "  {}: {steps}/{} env steps, eval success {:.0}%, {left}",
-            r.cell.name,
-            r.cell.steps,
-            100.0 * success
+            "  {}: {steps}/{} env steps, {success}, {left}",
+            r.cell.name, r.cell.steps
         );
     }
     println!(

@@ -76,6 +76,7 @@ impl LearnArgs {
         let mut cfg = self.learner.clone();
         cfg.run = self.run_id();
         (cfg.obs_dim, cfg.act_dim) = (obs_dim, act_dim);
+        cfg.pref.model.goal = Some(self.task.goal_obs());
         (cfg.sac.seed, cfg.ppo.seed) = (self.seed, self.seed);
         cfg.world = world;
         cfg.actors = actors;

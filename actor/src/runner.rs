@@ -38,6 +38,16 @@ impl Task {
             Task::Point => (POINT_OBS, POINT_ACT),
         }
     }
+
+    /// Where the observation holds the vector to the goal (first index, length), whose
+    /// length is the task reward's d: feeding's spoon minus mouth, the point's goal minus
+    /// position.
+    pub fn goal_obs(self) -> [usize; 2] {
+        match self {
+            Task::Feeding => [7, 3],
+            Task::Point => [2, 2],
+        }
+    }
 }
 
 /// Steps of one point-task episode.
@@ -323,6 +333,45 @@ pub async fn run(
             biased;
             _ = &mut shutdown => return Ok(()),
             r = publisher.publish(trajectory) => r?,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::WorldConfig;
+    use crate::controller::{Controller, ControllerKind};
+    use crate::point::point_episode;
+    use crate::rollout::run_episode;
+    use crate::world::FeedingWorld;
+
+    /// `-|obs[goal_obs]|` after each step is that step's task reward, on both tasks: what
+    /// the reward model's anchor reads (`--reward-anchor`).
+    #[test]
+    fn the_goal_in_the_observation_gives_the_task_reward() {
+        let mut world = FeedingWorld::new(WorldConfig::default()).unwrap();
+        let mut c = Controller::new(ControllerKind::Random);
+        let feeding = run_episode(&mut world, &mut c, 5).unwrap();
+        let mut k = 0.0f32;
+        let point = point_episode(5, POINT_HORIZON, |_| {
+            k += 0.3;
+            vec![k.sin(), k.cos()]
+        });
+        for (task, t) in [(Task::Feeding, feeding), (Task::Point, point)] {
+            let [at, len] = task.goal_obs();
+            let o = t.obs_dim as usize;
+            assert_eq!(o, task.dims().0);
+            for (i, r) in t.rewards.iter().enumerate() {
+                let row = &t.obs[(i + 1) * o..(i + 2) * o];
+                let d = row[at..at + len].iter().map(|x| x * x).sum::<f32>().sqrt();
+                assert!(
+                    (-d - r.task).abs() < 1e-5,
+                    "{task:?} step {i}: -|goal| {} against r_task {}",
+                    -d,
+                    r.task
+                );
+            }
         }
     }
 }

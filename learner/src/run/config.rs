@@ -187,6 +187,10 @@ impl LearnerConfig {
         if !(hi >= lo && hi <= 1.0) {
             return bad("reward_crop_max", &hi, "must be in [reward_crop_min, 1]");
         }
+        let c = p.model.anchor;
+        if !(c.is_finite() && c >= 0.0) {
+            return bad("reward_anchor", &c, "must be finite and >= 0");
+        }
         if p.feedback_interval == 0 {
             return bad("feedback_interval", &0, "must be at least 1");
         }
@@ -530,5 +534,6 @@ mod tests {
         refused(&|c| c.pref.model.crop_max = 0.5, "reward_crop_max is 0.5");
         refused(&|c| c.pref.pseudo_tau = 0.4, "pseudo_tau is 0.4");
         refused(&|c| c.pref.feedback_decay = 0.0, "feedback_decay is 0");
+        refused(&|c| c.pref.model.anchor = -1.0, "reward_anchor is -1");
     }
 }

@@ -132,6 +132,20 @@ pub struct RewardModelConfig {
     )]
     #[serde(default = "crop_max")]
     pub crop_max: f64,
+    /// Reward ensemble: model the person's reward as `r_hat + C r_task` and learn only
+    /// r_hat (task-anchored Bradley-Terry: the teacher's preference already contains the
+    /// task, which the designer knows, so the labels go to what r_task does not say: the
+    /// person's taste). r_task = -d, the distance to the goal read from the observation
+    /// ([`RewardModelConfig::goal`]). The learnt reward the policy trains on is the whole
+    /// `r_hat + C r_task`. 0: off (the authors').
+    #[arg(id = "reward_anchor", long = "reward-anchor", default_value_t = 0.0)]
+    #[serde(default)]
+    pub anchor: f64,
+    /// Where the observation holds the vector to the goal (first index, length): the
+    /// task's, filled by the binary (feeding: spoon minus mouth; point: goal minus point).
+    #[arg(skip)]
+    #[serde(default)]
+    pub goal: Option<[usize; 2]>,
     /// Seed of initialisation and data orders (the run's `--seed`).
     #[arg(skip)]
     pub seed: u64,
@@ -283,6 +297,21 @@ impl RewardModel {
                 cfg.batch
             );
         }
+        if !(cfg.anchor.is_finite() && cfg.anchor >= 0.0) {
+            candle_core::bail!("reward_anchor must be finite and >= 0 (got {})", cfg.anchor);
+        }
+        if cfg.anchor > 0.0 {
+            match cfg.goal {
+                Some([at, len]) if len > 0 && at + len <= obs_dim => {}
+                Some(g) => candle_core::bail!(
+                    "reward_anchor: the goal's place in the observation {g:?} is not within obs_dim {obs_dim}"
+                ),
+                None => candle_core::bail!(
+                    "reward_anchor {} needs a task whose observation holds the vector to the goal",
+                    cfg.anchor
+                ),
+            }
+        }
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let nets = (0..cfg.members)
             .map(|_| {
@@ -401,6 +430,22 @@ impl RewardModel {
         })
     }
 
+    /// The anchor `C r_task` of each row of raw `obs` (none when the anchor is off).
+    fn anchor_rows(&self, obs: &[f32]) -> Option<Vec<f32>> {
+        let [at, len] = self.cfg.goal.filter(|_| self.cfg.anchor > 0.0)?;
+        let c = self.cfg.anchor as f32;
+        Some(
+            obs.chunks_exact(self.obs_dim)
+                .map(|row| -c * row[at..at + len].iter().map(|x| x * x).sum::<f32>().sqrt())
+                .collect(),
+        )
+    }
+
+    /// The anchor's sum over `seg`'s steps (0 when off).
+    pub(super) fn anchor_sum(&self, seg: &Segment) -> f32 {
+        self.anchor_rows(&seg.obs).map_or(0.0, |a| a.iter().sum())
+    }
+
     /// Steps of `seg`, checked against the model's dimensions.
     fn steps(&self, seg: &Segment) -> Result<usize> {
         let steps = seg.obs.len() / self.obs_dim;
@@ -472,7 +517,10 @@ impl RewardModel {
                 sum.iter_mut().zip(&r).for_each(|(s, r)| *s += r);
             }
             let q = self.nets.len() as f32;
-            out.extend(sum.iter().map(|s| s / q));
+            match self.anchor_rows(&obs[start * o..end * o]) {
+                Some(anchor) => out.extend(sum.iter().zip(anchor).map(|(s, c)| s / q + c)),
+                None => out.extend(sum.iter().map(|s| s / q)),
+            }
         }
         Ok(out)
     }
@@ -500,16 +548,29 @@ impl RewardModel {
         }
         // The constructor refuses an empty ensemble, so there is a first member.
         let sum = sum.ok_or_else(|| candle_core::Error::Msg("empty ensemble".into()))?;
-        sum / self.nets.len() as f64
+        let mean = (sum / self.nets.len() as f64)?;
+        match self.cfg.goal.filter(|_| self.cfg.anchor > 0.0) {
+            Some([at, len]) => {
+                let d = obs
+                    .to_dtype(DType::F32)?
+                    .narrow(1, at, len)?
+                    .sqr()?
+                    .sum_keepdim(1)?
+                    .sqrt()?;
+                mean + d.affine(-self.cfg.anchor, 0.0)?
+            }
+            None => Ok(mean),
+        }
     }
 
-    /// `[member][segment]` sums of r_hat over each segment's steps, in chunks of whole
-    /// segments.
+    /// `[member][segment]` sums of r_hat (and the anchor) over each segment's steps, in
+    /// chunks of whole segments.
     fn segment_returns(&self, segs: &[&Segment]) -> Result<Vec<Vec<f32>>> {
         let steps = segs
             .iter()
             .map(|s| self.steps(s))
             .collect::<Result<Vec<_>>>()?;
+        let anchor: Vec<f32> = segs.iter().map(|s| self.anchor_sum(s)).collect();
         let mut out = vec![Vec::with_capacity(segs.len()); self.nets.len()];
         let mut start = 0;
         while start < segs.len() {
@@ -527,8 +588,8 @@ impl RewardModel {
             for (m, net) in self.nets.iter().enumerate() {
                 let r = net.net.run(&x, None)?.flatten_all()?.to_vec1::<f32>()?;
                 let mut at = 0;
-                for &n in &steps[start..end] {
-                    out[m].push(r[at..at + n].iter().sum());
+                for (&n, c) in steps[start..end].iter().zip(&anchor[start..end]) {
+                    out[m].push(r[at..at + n].iter().sum::<f32>() + c);
                     at += n;
                 }
             }

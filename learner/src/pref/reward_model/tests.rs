@@ -543,3 +543,142 @@ const GOLDEN_CROPS: [(usize, usize, usize); 5] = [
     (45, 0, 4),
     (45, 0, 1),
 ];
+
+/// Pearson correlation (test helper).
+fn corr(x: &[f32], y: &[f32]) -> f64 {
+    let n = x.len() as f64;
+    let (mx, my) = (
+        x.iter().map(|&v| v as f64).sum::<f64>() / n,
+        y.iter().map(|&v| v as f64).sum::<f64>() / n,
+    );
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (&a, &b) in x.iter().zip(y) {
+        let (a, b) = (a as f64 - mx, b as f64 - my);
+        sxy += a * b;
+        sxx += a * a;
+        syy += b * b;
+    }
+    sxy / (sxx * syy).sqrt()
+}
+
+#[test]
+fn the_anchor_adds_c_r_task_to_every_reward_and_return() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let segs = random_segments(&mut rng, 3, 9, 4, 2);
+    let plain = RewardModel::new(small(3, &[8, 8]), 4, 2).unwrap();
+    let cfg = RewardModelConfig {
+        anchor: 2.5,
+        goal: Some([1, 2]),
+        ..small(3, &[8, 8])
+    };
+    let anchored = RewardModel::new(cfg, 4, 2).unwrap();
+    let task = |o: &[f32]| -> Vec<f32> {
+        o.chunks_exact(4)
+            .map(|r| -2.5 * (r[1] * r[1] + r[2] * r[2]).sqrt())
+            .collect()
+    };
+    for s in &segs {
+        let (p, a) = (
+            plain.predict(&s.obs, &s.actions).unwrap(),
+            anchored.predict(&s.obs, &s.actions).unwrap(),
+        );
+        let c = task(&s.obs);
+        for i in 0..p.len() {
+            assert!((a[i] - p[i] - c[i]).abs() < 1e-5, "row {i}");
+        }
+        let obs = Tensor::from_slice(&s.obs, (9, 4), &Device::Cpu).unwrap();
+        let act = Tensor::from_slice(&s.actions, (9, 2), &Device::Cpu).unwrap();
+        let t = anchored.predict_tensor(&obs, &act).unwrap();
+        let t: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        for i in 0..p.len() {
+            assert!((t[i] - a[i]).abs() < 1e-5, "tensor row {i}");
+        }
+        let c_sum: f32 = c.iter().sum();
+        for (ra, rp) in anchored
+            .returns(s)
+            .unwrap()
+            .iter()
+            .zip(plain.returns(s).unwrap())
+        {
+            assert!((ra - rp - c_sum).abs() < 1e-4);
+        }
+    }
+    // Off without a goal to read, out of the observation, or negative: refused by name.
+    for (anchor, goal) in [(1.0, None), (1.0, Some([3, 2])), (-1.0, Some([1, 2]))] {
+        let cfg = RewardModelConfig {
+            anchor,
+            goal,
+            ..small(3, &[8])
+        };
+        let e = RewardModel::new(cfg, 4, 2)
+            .err()
+            .expect("refused")
+            .to_string();
+        assert!(e.contains("reward_anchor"), "{e}");
+    }
+}
+
+/// With the task part of the teacher's reward known, r_hat learns the rest: labels from
+/// `-|obs[1..3]| - |obs0|`, anchored on `obs[1..3]`, train an r_hat whose own part follows
+/// `-|obs0|` per step, where the plain model's r_hat mixes both.
+#[test]
+fn an_anchored_model_learns_what_the_task_does_not_say() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let steps = 20;
+    let mut segment = || {
+        let c: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let obs: Vec<f32> = (0..steps * 3)
+            .map(|i| c[i % 3] + rng.random_range(-0.5..0.5))
+            .collect();
+        let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
+        Arc::new(Segment { obs, actions })
+    };
+    let task = |o: &[f32]| -(o[1] * o[1] + o[2] * o[2]).sqrt();
+    let rest = |o: &[f32]| -o[0].abs();
+    let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(|o| task(o) + rest(o)).sum() };
+    let data: Vec<Labelled> = (0..300)
+        .map(|_| {
+            let (first, second) = (segment(), segment());
+            let target = if ret(&second) > ret(&first) { 1.0 } else { 0.0 };
+            Labelled {
+                first,
+                second,
+                target,
+            }
+        })
+        .collect();
+    let probe: Vec<f32> = (0..3000).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let probe_act = vec![0.0f32; probe.len() / 3];
+    let rows: Vec<&[f32]> = probe.chunks_exact(3).collect();
+    let want_rest: Vec<f32> = rows.iter().map(|o| rest(o)).collect();
+    let mut own = Vec::new();
+    for anchor in [0.0, 1.0] {
+        let cfg = RewardModelConfig {
+            batch: 32,
+            lr: 1e-3,
+            anchor,
+            goal: Some([1, 2]),
+            ..small(0, &[64, 64])
+        };
+        let mut model = RewardModel::new(cfg, 3, 1).unwrap();
+        model.train(&data).unwrap();
+        let r = model.predict(&probe, &probe_act).unwrap();
+        let r_hat: Vec<f32> = r
+            .iter()
+            .zip(&rows)
+            .map(|(r, o)| r - anchor as f32 * task(o))
+            .collect();
+        own.push(corr(&r_hat, &want_rest));
+    }
+    println!(
+        "per-step corr of r_hat with the rest: plain {:.3}, anchored {:.3}",
+        own[0], own[1]
+    );
+    assert!(own[1] > 0.8, "anchored {}", own[1]);
+    assert!(
+        own[1] > own[0] + 0.1,
+        "plain {} anchored {}",
+        own[0],
+        own[1]
+    );
+}

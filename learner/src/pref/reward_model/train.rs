@@ -165,7 +165,11 @@ impl RewardModel {
                 let r0 = &r[at..at + s[0]];
                 let r1 = &r[at + s[0]..at + s[0] + s[1]];
                 at += s[0] + s[1];
-                let d = (r1.iter().sum::<f32>() - r0.iter().sum::<f32>()) as f64;
+                // The anchor's sums are constants of the pair: they move the logit, not the
+                // gradient's path.
+                let d = (r1.iter().sum::<f32>() - r0.iter().sum::<f32>()
+                    + self.anchor_sum(&l.second)
+                    - self.anchor_sum(&l.first)) as f64;
                 let p = l.target as f64;
                 loss += (1.0 - p) * softplus(d) + p * softplus(-d);
                 if !l.is_equal() {
