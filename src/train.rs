@@ -76,7 +76,6 @@ impl LearnArgs {
         let mut cfg = self.learner.clone();
         cfg.run = self.run_id();
         (cfg.obs_dim, cfg.act_dim) = (obs_dim, act_dim);
-        cfg.pref.model.goal = Some(self.task.goal_obs());
         (cfg.sac.seed, cfg.ppo.seed) = (self.seed, self.seed);
         cfg.world = world;
         cfg.actors = actors;
@@ -87,11 +86,16 @@ impl LearnArgs {
             config::apply_preset(&mut cfg, &config::ppo_preset(), &self.explicit)?;
         }
         if self.preset == "paper" {
-            config::apply_preset(&mut cfg, &config::paper_preset(), &self.explicit)?;
+            let preset = config::paper_preset(cfg.algo);
+            config::apply_preset(&mut cfg, &preset, &self.explicit)?;
         }
         if self.task == Task::Point {
             let preset = config::point_preset(POINT_HORIZON);
             config::apply_preset(&mut cfg, &preset, &self.explicit)?;
+        }
+        // NOTE: only where it is read: a run checkpointed without it resumes.
+        if cfg.pref.model.anchor > 0.0 {
+            cfg.pref.model.goal = Some(self.task.goal_obs());
         }
         // NOTE: Decoupled PEBBLE trains on lambda_t r_task + r_hat with lambda_0 15: SAC's
         // critics then chase targets 15 times the task baseline's, and learn them slower

@@ -437,9 +437,8 @@ impl Feedback {
                 f64::NAN
             };
             let labels = data.len();
-            let mut data = data;
-            data.extend(pseudo_labels(&model, &unlabelled, tau)?);
-            let stats = model.train(&data)?;
+            let pseudo = pseudo_labels(&model, &unlabelled, tau)?;
+            let stats = model.train_with(&data, &pseudo)?;
             Ok(JobDone::Trained {
                 model: Box::new(model),
                 stats,

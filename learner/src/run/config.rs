@@ -242,17 +242,23 @@ fn label_efficiency_off() -> Vec<Setting> {
         ("pseudo_pairs", "/pref/pseudo_pairs", json!(0)),
         ("reward_crops", "/pref/model/crops", json!(0)),
         ("sac_hybrid_share", "/sac/hybrid_share", json!(0.0)),
+        ("reward_anchor", "/pref/model/anchor", json!(0.0)),
     ]
 }
 
 /// The authors' settings where the defaults differ (`--preset paper`): their network
 /// sizes, their ensemble training unbounded by `max_pairs`, the linear schedule, their
-/// budget (50,000 queries, 100 a session) and whole-trajectory queries.
-pub fn paper_preset() -> Vec<Setting> {
+/// budget (PEBBLE 50,000 queries, PrefPPO 10,000; 100 a session) and whole-trajectory
+/// queries.
+pub fn paper_preset(algo: Algo) -> Vec<Setting> {
     use serde_json::json;
     let mut v = label_efficiency_off();
+    let budget = match algo {
+        Algo::Sac => 50_000,
+        Algo::Ppo => 10_000,
+    };
     v.extend([
-        ("max_feedback", "/pref/max_feedback", json!(50_000)),
+        ("max_feedback", "/pref/max_feedback", json!(budget)),
         (
             "queries_per_session",
             "/pref/queries_per_session",
@@ -426,7 +432,13 @@ mod tests {
         assert_eq!(sac.pref.model.max_pairs, 4096, "PEBBLE's default");
         let explicit: BTreeSet<String> = ["sac_batch".to_string()].into();
         sac.sac.batch = 64;
-        apply_preset(&mut sac, &paper_preset(), &explicit).unwrap();
+        apply_preset(&mut sac, &paper_preset(Algo::Sac), &explicit).unwrap();
+        assert_eq!(sac.pref.max_feedback, 50_000, "PEBBLE's budget");
+        // PrefPPO under the paper's preset keeps PrefPPO's budget, whichever comes last.
+        let mut ppo = LearnerConfig::new("r", Algo::Ppo, RewardSource::Decoupled, 4, 2);
+        apply_preset(&mut ppo, &ppo_preset(), &BTreeSet::new()).unwrap();
+        apply_preset(&mut ppo, &paper_preset(Algo::Ppo), &BTreeSet::new()).unwrap();
+        assert_eq!(ppo.pref.max_feedback, 10_000, "PrefPPO's budget");
         assert_eq!(
             (sac.sac.hidden.clone(), sac.sac.batch),
             (vec![512, 512], 64)
@@ -452,7 +464,8 @@ mod tests {
         let cfg = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
         let json = serde_json::to_value(&cfg).unwrap();
         for (name, preset) in [
-            ("paper", paper_preset()),
+            ("paper", paper_preset(Algo::Sac)),
+            ("paper-ppo", paper_preset(Algo::Ppo)),
             ("ppo", ppo_preset()),
             ("point", point_preset(50)),
         ] {

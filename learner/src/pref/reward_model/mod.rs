@@ -136,8 +136,11 @@ pub struct RewardModelConfig {
     /// r_hat (task-anchored Bradley-Terry: the teacher's preference already contains the
     /// task, which the designer knows, so the labels go to what r_task does not say: the
     /// person's taste). r_task = -d, the distance to the goal read from the observation
-    /// ([`RewardModelConfig::goal`]). The learnt reward the policy trains on is the whole
-    /// `r_hat + C r_task`. 0: off (the authors').
+    /// ([`RewardModelConfig::goal`]) each action is taken in: the step's own r_task is
+    /// -d after it, so a segment's anchor is one step earlier than its r_task, and
+    /// r_hat(s, a) carries the difference (the step's progress; the store keeps no
+    /// observation after a trajectory's last action). The learnt reward the policy trains
+    /// on is the whole `r_hat + C r_task`. 0: off (the authors').
     #[arg(id = "reward_anchor", long = "reward-anchor", default_value_t = 0.0)]
     #[serde(default)]
     pub anchor: f64,

@@ -682,3 +682,40 @@ fn an_anchored_model_learns_what_the_task_does_not_say() {
         own[1]
     );
 }
+
+/// Pseudo-labels train, but the accuracy that stops a training and that it reports counts
+/// the labels only: against their own flipped copies the labels' accuracy would read 0.5.
+#[test]
+fn pseudo_labels_do_not_count_in_the_accuracy() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let labels = oracle_pairs(&mut rng, 64, 10);
+    let flipped: Vec<Labelled> = labels
+        .iter()
+        .map(|l| Labelled {
+            target: 1.0 - l.target,
+            ..l.clone()
+        })
+        .collect();
+    // One epoch, every pair once, no step: the reported accuracy is the model's as it is.
+    let cfg = RewardModelConfig {
+        lr: 0.0,
+        max_epochs: 1,
+        resample: Resample::Shuffle,
+        ..small(2, &[16])
+    };
+    let mut model = RewardModel::new(cfg.clone(), 3, 1).unwrap();
+    let stats = model.train_with(&labels, &flipped).unwrap();
+    // The normaliser was fitted to these segments as the training began; nothing else moved.
+    let before = model.accuracy(&labels).unwrap();
+    assert!(
+        (stats.accuracy - before).abs() < 1e-12,
+        "{} vs {before}",
+        stats.accuracy
+    );
+    assert_eq!(stats.pairs, 128, "the pseudo-labels train");
+    let mut plain = RewardModel::new(cfg, 3, 1).unwrap();
+    let joined = [labels.clone(), flipped].concat();
+    let all = plain.train(&joined).unwrap();
+    assert!((all.accuracy - 0.5).abs() < 1e-12, "{}", all.accuracy);
+    assert!((before - 0.5).abs() > 1e-6, "the check can tell: {before}");
+}

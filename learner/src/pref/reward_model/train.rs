@@ -118,10 +118,23 @@ impl RewardModel {
     /// of whole pairs of up to `chunk_rows` rows (each pair's loss depends on its own two
     /// sums only, so the chunks' gradients add up to the minibatch's). Also the summed
     /// loss, and the right answers among the hard labels and their count, before the step.
+    #[cfg(test)]
     pub(super) fn member_gradients(
         &self,
         m: usize,
         pairs: &[&Labelled],
+        chunk_rows: usize,
+    ) -> Result<(GradStore, f64, usize, usize)> {
+        self.member_gradients_counting(m, pairs, None, chunk_rows)
+    }
+
+    /// [`Self::member_gradients`], the right answers counted only over the pairs that
+    /// `counted` marks (all when `None`).
+    fn member_gradients_counting(
+        &self,
+        m: usize,
+        pairs: &[&Labelled],
+        counted: Option<&[bool]>,
         chunk_rows: usize,
     ) -> Result<(GradStore, f64, usize, usize)> {
         let net = &self.nets[m].net;
@@ -161,7 +174,8 @@ impl RewardModel {
             // sums: dCE/d sum_second = P - p = -dCE/d sum_first.
             let mut dz = Vec::with_capacity(rows);
             let mut at = 0;
-            for (l, s) in pairs[start..end].iter().zip(&steps) {
+            for (k, (l, s)) in pairs[start..end].iter().zip(&steps).enumerate() {
+                let counts = counted.is_none_or(|c| c[start + k]);
                 let r0 = &r[at..at + s[0]];
                 let r1 = &r[at + s[0]..at + s[0] + s[1]];
                 at += s[0] + s[1];
@@ -172,7 +186,7 @@ impl RewardModel {
                     - self.anchor_sum(&l.first)) as f64;
                 let p = l.target as f64;
                 loss += (1.0 - p) * softplus(d) + p * softplus(-d);
-                if !l.is_equal() {
+                if counts && !l.is_equal() {
                     hard += 1;
                     right += usize::from((d > 0.0) == (p > 0.5));
                 }
@@ -194,6 +208,22 @@ impl RewardModel {
     /// shuffle) and takes one Adam step per minibatch of `batch` pairs. An empty D leaves
     /// the model as it was.
     pub fn train(&mut self, data: &[Labelled]) -> Result<TrainStats> {
+        self.train_with(data, &[])
+    }
+
+    /// [`Self::train`] on the labels and, beside them, `pseudo`: pairs labelled by the
+    /// ensemble itself (SURF). They train like labels, but the accuracy (what stops the
+    /// training and what it reports) counts the labels and their crops only: the pseudo
+    /// ones are right by construction.
+    pub fn train_with(&mut self, labels: &[Labelled], pseudo: &[Labelled]) -> Result<TrainStats> {
+        let real = labels.len();
+        let joined;
+        let data = if pseudo.is_empty() {
+            labels
+        } else {
+            joined = [labels, pseudo].concat();
+            &joined[..]
+        };
         for (i, l) in data.iter().enumerate() {
             self.steps(&l.first)?;
             self.steps(&l.second)?;
@@ -227,6 +257,17 @@ impl RewardModel {
         };
 
         let n = data.len();
+        // Crops follow D, each label's `crops` in D's order: a crop counts as its label.
+        let base = labels.len() + pseudo.len();
+        let counted: Vec<bool> = (0..n)
+            .map(|i| {
+                if i < base {
+                    i < real
+                } else {
+                    (i - base) / self.cfg.crops.max(1) < real
+                }
+            })
+            .collect();
         let q = self.nets.len() as f64;
         let mut stats = TrainStats {
             epochs: 0,
@@ -255,7 +296,9 @@ impl RewardModel {
                 let (mut member_loss, mut right, mut hard) = (0.0, 0, 0);
                 for idx in order.chunks(self.cfg.batch) {
                     let pairs: Vec<&Labelled> = idx.iter().map(|&i| &data[i]).collect();
-                    let (grads, l, r, h) = self.member_gradients(m, &pairs, CHUNK_ROWS)?;
+                    let mask: Vec<bool> = idx.iter().map(|&i| counted[i]).collect();
+                    let (grads, l, r, h) =
+                        self.member_gradients_counting(m, &pairs, Some(&mask), CHUNK_ROWS)?;
                     self.opts[m].step(&grads)?;
                     member_loss += l;
                     right += r;
