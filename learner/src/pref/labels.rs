@@ -384,6 +384,31 @@ impl LabelStore {
         Ok(store)
     }
 
+    /// Open the label store at `path` to read it only (safe while its run goes): no
+    /// upgrade, nothing written; a file that is not a label store of this schema is
+    /// refused.
+    pub fn open_read_only(path: &Path) -> Result<Self> {
+        let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+            .with_context(|| format!("opening label store {}", path.display()))?;
+        let schema: Option<String> = conn
+            .query_row("SELECT value FROM meta WHERE key = 'schema'", [], |r| {
+                r.get(0)
+            })
+            .optional()
+            .with_context(|| format!("{} is not a label store", path.display()))?;
+        if schema.as_deref() != Some(SCHEMA.to_string().as_str()) {
+            bail!(
+                "label store {} has schema {}, this build reads {SCHEMA} (open it with its run once to upgrade it)",
+                path.display(),
+                schema.unwrap_or_else(|| "none".into())
+            );
+        }
+        Ok(Self {
+            conn,
+            path: path.to_path_buf(),
+        })
+    }
+
     /// The file this store lives in.
     pub fn path(&self) -> &Path {
         &self.path
