@@ -155,6 +155,21 @@ fn bad_input_is_refused_without_a_panic() {
         !out.status.success() && stderr.contains("/no/such/file"),
         "{stderr}"
     );
+    // A label store that is not there, and one that is not a label store.
+    let out = pbrl(&["labels", "fit", "/no/such/run"]);
+    let (_, stderr) = text(&out);
+    assert!(
+        !out.status.success() && stderr.contains("no label store at /no/such/run"),
+        "{stderr}"
+    );
+    let junk = dir.path().join("junk.sqlite");
+    std::fs::write(&junk, "not a database").unwrap();
+    let out = pbrl(&["labels", "fit", junk.to_str().unwrap()]);
+    let (_, stderr) = text(&out);
+    assert!(
+        !out.status.success() && stderr.contains("junk.sqlite") && !stderr.contains("panicked"),
+        "{stderr}"
+    );
 }
 
 #[test]
