@@ -826,7 +826,7 @@ fn pseudo_labels(
 }
 
 /// The soft target of a preference: P[second preferred].
-fn target(p: Preference) -> f32 {
+pub(crate) fn target(p: Preference) -> f32 {
     match p {
         Preference::First => 0.0,
         Preference::Second => 1.0,

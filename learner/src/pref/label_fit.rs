@@ -16,9 +16,9 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use crate::pref::feedback::target;
 use crate::pref::labels::LabelStore;
-use crate::pref::reward_model::{Labelled, RewardModel, RewardModelConfig, Segment};
-use pbrl_common::wire::Preference;
+use crate::pref::reward_model::{task_reward, Labelled, RewardModel, RewardModelConfig, Segment};
 
 /// A store's labels (first, second and equal) as D trains on them, and the sizes of the
 /// observation and action they were taken with.
@@ -68,15 +68,10 @@ pub fn read_labels(path: &Path) -> Result<StoredLabels> {
         };
         let first = side(row.first, row.first_segment)?;
         let second = side(row.second, row.second_segment)?;
-        let target = match row.preference {
-            Preference::First => 0.0,
-            Preference::Second => 1.0,
-            Preference::Equal | Preference::Skip => 0.5,
-        };
         data.push(Labelled {
             first,
             second,
-            target,
+            target: target(row.preference),
         });
     }
     Ok(StoredLabels {
@@ -107,10 +102,10 @@ impl FitReport {
 }
 
 /// The task prior's sum over a segment: `-|obs[goal]|` of each row.
-fn prior_sum(seg: &Segment, obs_dim: usize, [at, len]: [usize; 2]) -> f32 {
+fn prior_sum(seg: &Segment, obs_dim: usize, goal: [usize; 2]) -> f32 {
     seg.obs
         .chunks_exact(obs_dim)
-        .map(|row| -row[at..at + len].iter().map(|x| x * x).sum::<f32>().sqrt())
+        .map(|row| task_reward(row, goal))
         .sum()
 }
 
@@ -201,6 +196,7 @@ mod tests {
     use super::*;
     use crate::pref::labels::StoredTrajectory;
     use pbrl_common::wire::Answer;
+    use pbrl_common::wire::Preference;
     use rand::Rng;
 
     fn stored(

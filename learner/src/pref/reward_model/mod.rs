@@ -179,6 +179,12 @@ impl RewardModelConfig {
     }
 }
 
+/// The task reward `-|row[at..at + len]|` of one raw observation row whose goal vector
+/// lies at `[at, len]` (what the anchor and `pbrl labels fit`'s task prior read).
+pub fn task_reward(row: &[f32], [at, len]: [usize; 2]) -> f32 {
+    -row[at..at + len].iter().map(|x| x * x).sum::<f32>().sqrt()
+}
+
 /// A trajectory as the reward model sees it: `steps` rows of raw obs and of actions (the
 /// obs after the last action is not included).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -435,11 +441,11 @@ impl RewardModel {
 
     /// The anchor `C r_task` of each row of raw `obs` (none when the anchor is off).
     fn anchor_rows(&self, obs: &[f32]) -> Option<Vec<f32>> {
-        let [at, len] = self.cfg.goal.filter(|_| self.cfg.anchor > 0.0)?;
+        let goal = self.cfg.goal.filter(|_| self.cfg.anchor > 0.0)?;
         let c = self.cfg.anchor as f32;
         Some(
             obs.chunks_exact(self.obs_dim)
-                .map(|row| -c * row[at..at + len].iter().map(|x| x * x).sum::<f32>().sqrt())
+                .map(|row| c * task_reward(row, goal))
                 .collect(),
         )
     }

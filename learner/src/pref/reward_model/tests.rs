@@ -305,6 +305,16 @@ fn members_draw_their_own_orders_deterministically() {
 /// `-|obs0|`: each segment's observations scatter (by +-0.5) around its own centre in
 /// [-1, 1]^3, as whole trajectories differ; the action is noise.
 fn oracle_pairs(rng: &mut impl Rng, n: usize, steps: usize) -> Vec<Labelled> {
+    oracle_pairs_under(rng, n, steps, |o| -o[0].abs())
+}
+
+/// [`oracle_pairs`] under the true reward `reward` of each observation row.
+fn oracle_pairs_under(
+    rng: &mut impl Rng,
+    n: usize,
+    steps: usize,
+    reward: impl Fn(&[f32]) -> f32,
+) -> Vec<Labelled> {
     let mut segment = || {
         let c: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
         let obs = (0..steps * 3)
@@ -313,7 +323,7 @@ fn oracle_pairs(rng: &mut impl Rng, n: usize, steps: usize) -> Vec<Labelled> {
         let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
         Arc::new(Segment { obs, actions })
     };
-    let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(|o| -o[0].abs()).sum() };
+    let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(&reward).sum() };
     (0..n)
         .map(|_| {
             let (first, second) = (segment(), segment());
@@ -624,29 +634,9 @@ fn the_anchor_adds_c_r_task_to_every_reward_and_return() {
 #[test]
 fn an_anchored_model_learns_what_the_task_does_not_say() {
     let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let steps = 20;
-    let mut segment = || {
-        let c: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let obs: Vec<f32> = (0..steps * 3)
-            .map(|i| c[i % 3] + rng.random_range(-0.5..0.5))
-            .collect();
-        let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
-        Arc::new(Segment { obs, actions })
-    };
     let task = |o: &[f32]| -(o[1] * o[1] + o[2] * o[2]).sqrt();
     let rest = |o: &[f32]| -o[0].abs();
-    let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(|o| task(o) + rest(o)).sum() };
-    let data: Vec<Labelled> = (0..300)
-        .map(|_| {
-            let (first, second) = (segment(), segment());
-            let target = if ret(&second) > ret(&first) { 1.0 } else { 0.0 };
-            Labelled {
-                first,
-                second,
-                target,
-            }
-        })
-        .collect();
+    let data = oracle_pairs_under(&mut rng, 300, 20, |o| task(o) + rest(o));
     let probe: Vec<f32> = (0..3000).map(|_| rng.random_range(-1.5..1.5)).collect();
     let probe_act = vec![0.0f32; probe.len() / 3];
     let rows: Vec<&[f32]> = probe.chunks_exact(3).collect();
