@@ -147,6 +147,7 @@ pub fn evaluate(
                         truth: t.rewards.iter().map(|r| r.truth).collect(),
                         human: t.rewards.iter().map(|r| r.human).collect(),
                         task: t.rewards.iter().map(|r| r.task).collect(),
+                        features: t.features(),
                     });
                 }
                 Ok(t.outcome)

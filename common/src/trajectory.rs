@@ -13,6 +13,19 @@ pub const TRAJECTORY_FORMAT: u16 = 1;
 /// `[C_d, C_e, C_v, C_f, C_hf, C_fd, C_fdv]`.
 pub const PREFERENCE_TERMS: [&str; 7] = ["C_d", "C_e", "C_v", "C_f", "C_hf", "C_fd", "C_fdv"];
 
+/// How many designer-computed comfort features a step has ([`StepRewards::features`]).
+pub const FEATURES: usize = 6;
+
+/// Their names, in order.
+pub const FEATURE_NAMES: [&str; FEATURES] = [
+    "eaten",
+    "ee_speed",
+    "force",
+    "spoon_force_over_10N",
+    "food_hits",
+    "eaten_speed",
+];
+
 /// Every reward part of one env step, kept apart.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepRewards {
@@ -26,6 +39,23 @@ pub struct StepRewards {
     pub truth: f32,
     /// Sketchy task reward r_task = -d (paper Eq. 7).
     pub task: f32,
+}
+
+impl StepRewards {
+    /// The designer-computed comfort features of this step, what a reward model may read
+    /// beside the observation (`--reward-features`): the measurements behind the paper's
+    /// preference terms but C_d (which the observation holds), unweighted and as
+    /// magnitudes: food eaten, EE speed, contact force on the person, the spoon's force
+    /// where it is 10 N or more, new food hits on the person, the summed speed of the food
+    /// eaten. They say what happened, not how a person weighs it: the weights, and any
+    /// taste outside them, are what the labels teach. Zero on tasks without them.
+    pub fn features(&self) -> [f32; FEATURES] {
+        let mut f = [0f32; FEATURES];
+        f.iter_mut()
+            .zip(&self.terms[1..])
+            .for_each(|(f, t)| *f = t.abs());
+        f
+    }
 }
 
 /// How an episode ended and what it achieved.
@@ -141,6 +171,11 @@ impl Trajectory {
     pub fn action_at(&self, t: usize) -> &[f32] {
         let d = self.act_dim as usize;
         &self.actions[t * d..(t + 1) * d]
+    }
+
+    /// Every step's [`StepRewards::features`], `steps` rows of [`FEATURES`], flattened.
+    pub fn features(&self) -> Vec<f32> {
+        self.rewards.iter().flat_map(|r| r.features()).collect()
     }
 
     /// Encode with bincode (standard configuration).

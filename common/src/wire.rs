@@ -7,8 +7,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
-/// Version of the wire format; bumped whenever a message changes.
-pub const WIRE_FORMAT: u16 = 7;
+/// Version of the wire format; bumped whenever a message changes (8: evaluation steps
+/// carry the comfort features).
+pub const WIRE_FORMAT: u16 = 8;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -103,6 +104,9 @@ pub struct EvalSteps {
     /// r_H and the task reward r_task of each step.
     pub human: Vec<f32>,
     pub task: Vec<f32>,
+    /// Each step's comfort features ([`crate::trajectory::StepRewards::features`]), rows
+    /// of [`crate::trajectory::FEATURES`] (empty: none).
+    pub features: Vec<f32>,
 }
 
 /// The outcome of each evaluation episode, in the order of the request's seeds.
@@ -414,13 +418,19 @@ struct EnvelopeRef<'a> {
 
 /// Decode a message for run `run` and check it.
 pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
+    decode_formats(run, bytes, &[WIRE_FORMAT])
+}
+
+/// [`decode`], accepting the envelope formats `formats` (older formats whose body of the
+/// kind expected is laid out as this build's).
+fn decode_formats(run: &str, bytes: &[u8], formats: &[u16]) -> Result<Body, WireError> {
     if bytes.len() > MAX_MESSAGE_BYTES {
         return Err(WireError::TooLarge { bytes: bytes.len() });
     }
     let (env, _): (Envelope, usize) =
         bincode::serde::decode_from_slice(bytes, bincode::config::standard())
             .map_err(|e| WireError::Decode(e.to_string()))?;
-    if env.format != WIRE_FORMAT {
+    if !formats.contains(&env.format) {
         return Err(WireError::Format {
             found: env.format,
             expected: WIRE_FORMAT,
@@ -468,6 +478,14 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                         });
                     }
                 }
+                let features = e.truth.len() * crate::trajectory::FEATURES;
+                if !e.features.is_empty() && e.features.len() != features {
+                    return Err(WireError::Shape {
+                        field: format!("steps[{k}].features"),
+                        found: e.features.len(),
+                        expected: features,
+                    });
+                }
                 for (name, xs) in [("human", &e.human), ("task", &e.task)] {
                     if xs.len() != e.truth.len() {
                         return Err(WireError::Shape {
@@ -483,6 +501,7 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
                     .chain(&e.truth)
                     .chain(&e.human)
                     .chain(&e.task)
+                    .chain(&e.features)
                     .any(|x| !x.is_finite())
                 {
                     return Err(WireError::NonFinite {
@@ -543,8 +562,9 @@ pub fn decode(run: &str, bytes: &[u8]) -> Result<Body, WireError> {
 }
 
 /// A query as a label store keeps it (the encoded message of an open query): this build's
-/// format, or format 6's (before segments), read as whole-trajectory segments with no
-/// R_avg, so that a store of an older build still asks its open queries.
+/// format, format 7's (its query is laid out as this build's: format 8 changed only the
+/// evaluation steps), or format 6's (before segments), read as whole-trajectory segments
+/// with no R_avg, so that a store of an older build still asks its open queries.
 pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> {
     // NOTE: the envelope starts with its format; a format-6 body does not decode as
     // this build's, so the format is read first.
@@ -557,7 +577,7 @@ pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> 
             expected: WIRE_FORMAT,
         })
     } else {
-        decode(run, bytes)
+        decode_formats(run, bytes, &[WIRE_FORMAT, 7])
     } {
         Ok(Body::Query(q)) => Ok(*q),
         Ok(_) => Err(WireError::Decode("the message is not a query".into())),
@@ -761,6 +781,7 @@ mod tests {
             truth: vec![-1.0; truth],
             human: vec![-0.5; truth],
             task: vec![-0.5; truth],
+            features: vec![0.25; truth * crate::trajectory::FEATURES],
         };
         let result = |s: Vec<EvalSteps>| {
             Body::EvalResult(EvalResult {
@@ -785,6 +806,15 @@ mod tests {
         assert!(e.to_string().contains("steps[1].obs"), "{e}");
         let e = refused(vec![steps(6, 3, 3), steps(0, 3, 0)]);
         assert!(e.to_string().contains("steps[1].actions"), "{e}");
+        // Features that are not whole steps; none at all is fine.
+        let mut short = steps(6, 3, 3);
+        short.features.pop();
+        let e = refused(vec![steps(6, 3, 3), short]);
+        assert!(e.to_string().contains("steps[1].features"), "{e}");
+        let mut bare = steps(6, 3, 3);
+        bare.features.clear();
+        let ok = result(vec![steps(6, 3, 3), bare]);
+        assert_eq!(decode("r", &encode("r", &ok)).unwrap(), ok);
         let mut nan = steps(6, 3, 3);
         nan.truth[2] = f32::NAN;
         assert!(matches!(
@@ -896,6 +926,22 @@ mod tests {
             decode_stored_query("other", &bytes),
             Err(WireError::Run { .. })
         ));
+        // Format 7's query is this build's query in a format-7 envelope.
+        let body = Body::Query(Box::new(q.clone()));
+        let bytes = bincode::serde::encode_to_vec(
+            EnvelopeRef {
+                format: 7,
+                run: "r",
+                body: &body,
+            },
+            bincode::config::standard(),
+        )
+        .unwrap();
+        assert!(
+            decode("r", &bytes).is_err(),
+            "a receiver speaks format 8 only"
+        );
+        assert_eq!(decode_stored_query("r", &bytes).unwrap(), q);
         // Format 6's answer (body 6) is not a query.
         let answer =
             bincode::serde::encode_to_vec((6u16, "r", 6u32, &q6), bincode::config::standard())

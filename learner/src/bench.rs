@@ -90,7 +90,7 @@ fn sac_step_with(
     model: Option<&RewardModel>,
 ) -> Result<f64> {
     let reward = |b: &crate::rl::replay::Batch| match model {
-        Some(m) => m.predict_tensor(&b.obs, &b.act),
+        Some(m) => m.predict_tensor(&b.obs, &b.act, b.features.as_ref()),
         None => Ok(b.truth.clone()),
     };
     let cfg = SacConfig {
@@ -174,6 +174,7 @@ pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64>
             actions: (0..steps * ACT)
                 .map(|_| rng.random_range(-1.0..1.0))
                 .collect(),
+            features: Vec::new(),
         })
     };
     let data: Vec<Labelled> = (0..labels)

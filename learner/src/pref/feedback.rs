@@ -108,12 +108,8 @@ impl Side {
     /// The segment's steps, as the reward model reads them.
     fn segment(&self) -> Segment {
         let c = &self.trajectory;
-        let (o, a) = (c.obs_dim as usize, c.act_dim as usize);
-        let end = self.start + self.len;
-        Segment {
-            obs: c.obs[self.start * o..end * o].to_vec(),
-            actions: c.actions[self.start * a..end * a].to_vec(),
-        }
+        let span = (self.start, self.len);
+        Segment::of(&c.obs, &c.actions, &c.features, span, c.steps())
     }
 }
 
@@ -237,6 +233,7 @@ impl Feedback {
         let seg = Arc::new(Segment {
             obs: s.obs,
             actions: s.actions,
+            features: s.features,
         });
         self.segments.insert(id, seg.clone());
         Ok(seg)
@@ -257,11 +254,7 @@ impl Feedback {
                 self.store.path().display()
             );
         }
-        let o = self.model.obs_dim();
-        Ok(Arc::new(Segment {
-            obs: whole.obs[start * o..(start + len) * o].to_vec(),
-            actions: whole.actions[start * a..(start + len) * a].to_vec(),
-        }))
+        Ok(Arc::new(whole.cut(start, len, steps)))
     }
 
     /// Trajectory `c` as one side of a query: its segment drawn as the settings say
@@ -872,6 +865,7 @@ fn seg_of(c: &Candidate) -> Segment {
     Segment {
         obs: c.obs.clone(),
         actions: c.actions.clone(),
+        features: c.features.clone(),
     }
 }
 
@@ -887,6 +881,7 @@ fn stored(side: &Side) -> StoredTrajectory<'_> {
         act_dim: c.act_dim as usize,
         obs: &c.obs,
         actions: &c.actions,
+        features: &c.features,
         segment: (side.start, side.len),
     }
 }
@@ -1120,6 +1115,7 @@ mod tests {
         let seg = |v: f32, steps: usize| Segment {
             obs: vec![v; steps],
             actions: vec![0.0; steps],
+            features: Vec::new(),
         };
         let cfg = crate::pref::reward_model::RewardModelConfig {
             hidden: vec![16],
@@ -1159,6 +1155,7 @@ mod tests {
                 obs: vec![v; 5],
                 actions: vec![0.0; 5],
                 truth: vec![0.0; 5],
+                features: Vec::new(),
             }),
             start: 0,
             len: 5,

@@ -61,10 +61,13 @@ pub fn read_labels(path: &Path) -> Result<StoredLabels> {
                     t.steps
                 );
             }
-            Ok(Arc::new(Segment {
-                obs: t.obs[start * t.obs_dim..(start + len) * t.obs_dim].to_vec(),
-                actions: t.actions[start * t.act_dim..(start + len) * t.act_dim].to_vec(),
-            }))
+            Ok(Arc::new(Segment::of(
+                &t.obs,
+                &t.actions,
+                &t.features,
+                (start, len),
+                t.steps,
+            )))
         };
         let first = side(row.first, row.first_segment)?;
         let second = side(row.second, row.second_segment)?;
@@ -215,6 +218,7 @@ mod tests {
             act_dim,
             obs: &t.0,
             actions: &t.1,
+            features: &[],
             segment,
         }
     }

@@ -244,6 +244,7 @@ mod tests {
             act_dim: 1,
             obs: &obs,
             actions: &actions,
+            features: &[],
             segment: (0, 2),
         };
         let mut ids = Vec::new();

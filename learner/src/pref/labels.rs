@@ -64,7 +64,7 @@ use pbrl_common::wire::{Answer, Preference};
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 
 /// The layout this build writes and reads (`meta.schema`).
-pub const SCHEMA: u32 = 3;
+pub const SCHEMA: u32 = 4;
 
 const CREATE: &str = "
 CREATE TABLE meta (
@@ -83,6 +83,7 @@ CREATE TABLE trajectories (
     act_dim INTEGER NOT NULL CHECK (act_dim > 0),
     obs BLOB NOT NULL CHECK (length(obs) = 4 * steps * obs_dim),
     actions BLOB NOT NULL CHECK (length(actions) = 4 * steps * act_dim),
+    features BLOB CHECK (features IS NULL OR length(features) % (4 * steps) = 0),
     UNIQUE (actor, incarnation, seq)
 );
 CREATE TABLE queries (
@@ -133,6 +134,13 @@ ALTER TABLE queries ADD COLUMN second_start INTEGER;
 ALTER TABLE queries ADD COLUMN second_len INTEGER;
 DROP VIEW IF EXISTS labels;
 UPDATE meta SET value = '3' WHERE key = 'schema';
+";
+
+/// What schema 4 added to schema 3: each trajectory's comfort features per step (NULL for
+/// the trajectories an older build stored, which did not keep them).
+const MIGRATE_3_TO_4: &str = "
+ALTER TABLE trajectories ADD COLUMN features BLOB;
+UPDATE meta SET value = '4' WHERE key = 'schema';
 ";
 
 const REPEATS: &str = "
@@ -190,6 +198,8 @@ pub struct StoredTrajectory<'a> {
     pub obs: &'a [f32],
     /// `steps` rows of `act_dim`, as the policy gave them.
     pub actions: &'a [f32],
+    /// `steps` rows of comfort features (empty: none kept).
+    pub features: &'a [f32],
     /// The segment the query compares: steps `start .. start + len` (`(0, steps)`: the
     /// whole trajectory). Kept with the query; the trajectory is stored whole.
     pub segment: (usize, usize),
@@ -225,6 +235,13 @@ impl StoredTrajectory<'_> {
                 self.key(),
                 self.obs.len(),
                 self.obs_dim
+            );
+        }
+        if !self.features.len().is_multiple_of(steps) {
+            bail!(
+                "{side} trajectory {}: {} comfort feature numbers are not {steps} rows",
+                self.key(),
+                self.features.len()
             );
         }
         let (start, len) = self.segment;
@@ -324,12 +341,17 @@ pub struct Segment {
     pub obs: Vec<f32>,
     /// `steps` rows of `act_dim`.
     pub actions: Vec<f32>,
+    /// `steps` rows of comfort features (empty: none kept).
+    pub features: Vec<f32>,
 }
 
 /// The preference dataset D of one run.
 pub struct LabelStore {
     conn: Connection,
     path: PathBuf,
+    /// The trajectories table has its features column (false only for a schema-3 store
+    /// opened read-only).
+    features: bool,
 }
 
 // NOTE: SQLite's integers are i64; u64 values are stored by their bits and read back the
@@ -365,6 +387,7 @@ impl LabelStore {
         let mut store = Self {
             conn,
             path: path.to_path_buf(),
+            features: true,
         };
         store
             .configure()
@@ -385,8 +408,8 @@ impl LabelStore {
     }
 
     /// Open the label store at `path` to read it only (safe while its run goes): no
-    /// upgrade, nothing written; a file that is not a label store of this schema is
-    /// refused.
+    /// upgrade, nothing written; a file that is not a label store of this schema (or of
+    /// schema 3, read as keeping no features) is refused.
     pub fn open_read_only(path: &Path) -> Result<Self> {
         let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
             .with_context(|| format!("opening label store {}", path.display()))?;
@@ -396,7 +419,8 @@ impl LabelStore {
             })
             .optional()
             .with_context(|| format!("{} is not a label store", path.display()))?;
-        if schema.as_deref() != Some(SCHEMA.to_string().as_str()) {
+        let features = schema.as_deref() == Some(SCHEMA.to_string().as_str());
+        if !features && schema.as_deref() != Some("3") {
             bail!(
                 "label store {} has schema {}, this build reads {SCHEMA} (open it with its run once to upgrade it)",
                 path.display(),
@@ -406,6 +430,7 @@ impl LabelStore {
         Ok(Self {
             conn,
             path: path.to_path_buf(),
+            features,
         })
     }
 
@@ -480,6 +505,12 @@ impl LabelStore {
             // segments stay NULL and read as the whole trajectory.
             tx.execute_batch(&format!("{MIGRATE_2_TO_3}{VIEW}"))
                 .with_context(|| format!("upgrading label store {} to schema 3", path.display()))?;
+            schema = "3".into();
+        }
+        if schema == "3" {
+            // NOTE: the trajectories of an older build keep no features: NULL, read as none.
+            tx.execute_batch(MIGRATE_3_TO_4)
+                .with_context(|| format!("upgrading label store {} to schema 4", path.display()))?;
             schema = SCHEMA.to_string();
         }
         if schema != SCHEMA.to_string() {
@@ -829,16 +860,27 @@ impl LabelStore {
                 self.path.display()
             )
         };
-        let row: Option<(i64, i64, i64, Blob, Blob)> = self
+        let sql = if self.features {
+            "SELECT steps, obs_dim, act_dim, obs, actions, features FROM trajectories WHERE id = ?1"
+        } else {
+            "SELECT steps, obs_dim, act_dim, obs, actions, NULL FROM trajectories WHERE id = ?1"
+        };
+        type Row = (i64, i64, i64, Blob, Blob, Option<Blob>);
+        let row: Option<Row> = self
             .conn
-            .query_row(
-                "SELECT steps, obs_dim, act_dim, obs, actions FROM trajectories WHERE id = ?1",
-                [int(trajectory)],
-                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?)),
-            )
+            .query_row(sql, [int(trajectory)], |r| {
+                Ok((
+                    r.get(0)?,
+                    r.get(1)?,
+                    r.get(2)?,
+                    r.get(3)?,
+                    r.get(4)?,
+                    r.get(5)?,
+                ))
+            })
             .optional()
             .with_context(context)?;
-        let Some((steps, obs_dim, act_dim, obs, actions)) = row else {
+        let Some((steps, obs_dim, act_dim, obs, actions, features)) = row else {
             bail!(
                 "label store {} has no trajectory {trajectory}",
                 self.path.display()
@@ -861,12 +903,21 @@ impl LabelStore {
                 );
             }
         }
+        let features = features.unwrap_or_default();
+        if !features.len().is_multiple_of(4 * steps.max(1)) {
+            bail!(
+                "features have {} bytes, not {steps} rows of f32: {}",
+                features.len(),
+                context()
+            );
+        }
         Ok(Segment {
             steps,
             obs_dim,
             act_dim,
             obs: from_blob(&obs),
             actions: from_blob(&actions),
+            features: from_blob(&features),
         })
     }
 }
@@ -913,8 +964,9 @@ fn put_trajectory(tx: &Transaction<'_>, t: &StoredTrajectory<'_>) -> Result<u64>
     }
     tx.execute(
         "INSERT INTO trajectories
-             (actor, incarnation, seq, seed, policy_version, steps, obs_dim, act_dim, obs, actions)
-         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+             (actor, incarnation, seq, seed, policy_version, steps, obs_dim, act_dim, obs, actions,
+              features)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
         params![
             t.actor,
             int(t.incarnation),
@@ -925,7 +977,8 @@ fn put_trajectory(tx: &Transaction<'_>, t: &StoredTrajectory<'_>) -> Result<u64>
             t.obs_dim as i64,
             t.act_dim as i64,
             to_blob(t.obs),
-            to_blob(t.actions)
+            to_blob(t.actions),
+            (!t.features.is_empty()).then(|| to_blob(t.features))
         ],
     )
     .with_context(context)?;
@@ -976,6 +1029,7 @@ mod tests {
             act_dim: ACT_DIM,
             obs: &t.obs,
             actions: &t.actions,
+            features: &[],
             segment: (0, t.actions.len() / ACT_DIM),
         }
     }
@@ -1202,6 +1256,7 @@ mod tests {
              ALTER TABLE queries DROP COLUMN first_len;
              ALTER TABLE queries DROP COLUMN second_start;
              ALTER TABLE queries DROP COLUMN second_len;
+             ALTER TABLE trajectories DROP COLUMN features;
              CREATE VIEW labels AS SELECT id AS query FROM queries;
              UPDATE meta SET value = '1' WHERE key = 'schema';",
         )
@@ -1243,6 +1298,7 @@ mod tests {
              ALTER TABLE queries DROP COLUMN first_len;
              ALTER TABLE queries DROP COLUMN second_start;
              ALTER TABLE queries DROP COLUMN second_len;
+             ALTER TABLE trajectories DROP COLUMN features;
              CREATE VIEW labels AS SELECT id AS query FROM queries;
              UPDATE meta SET value = '2' WHERE key = 'schema';",
         )
@@ -1261,8 +1317,20 @@ mod tests {
         let (a, b) = (traj(0, 7, 5), traj(1, 7, 5));
         let (mut sa, mut sb) = (stored(&a), stored(&b));
         (sa.segment, sb.segment) = ((1, 3), (2, 3));
+        // Schema 4: a trajectory keeps its comfort features (the older ones none).
+        let features: Vec<f32> = (0..5 * 6).map(|i| i as f32 * 0.5).collect();
+        sa.features = &features;
         let asked = store.ask(2, "uniform", 10, 5, &sa, &sb, message).unwrap();
         answer(&mut store, asked.query, Preference::First);
+        assert!(store.segment(rows[0].first).unwrap().features.is_empty());
+        assert_eq!(store.segment(asked.first).unwrap().features, features);
+        assert!(store.segment(asked.second).unwrap().features.is_empty());
+        let mut ragged = stored(&a);
+        ragged.features = &features[..7];
+        let e = store
+            .ask(2, "uniform", 10, 5, &ragged, &sb, message)
+            .unwrap_err();
+        assert!(format!("{e:#}").contains("comfort feature"), "{e:#}");
         let rows = store.labels_since(rows[0].answer_no).unwrap();
         assert_eq!(
             (rows[0].first_segment, rows[0].second_segment),

@@ -30,9 +30,11 @@ pub struct TrajKey {
 /// What the reward model and the teachers need of one trajectory: no replay data, and the
 /// observations the actions were taken in (`steps` rows, not the trajectory's `steps + 1`).
 ///
-/// One feeding trajectory (obs 25, act 7, 200 steps) costs 26,520 bytes in memory:
-/// `4 * (200 * 25 + 200 * 7 + 200) = 26,400` bytes of numbers plus the 120-byte struct
-/// (see [`Candidate::bytes`]); a full buffer of 10,000 is about 265 MB.
+/// One feeding trajectory (obs 25, act 7, 200 steps) costs 31,344 bytes in memory:
+/// `4 * (200 * 25 + 200 * 7 + 200 + 200 * 6) = 31,200` bytes of numbers (observations,
+/// actions, truth, comfort features) plus the 144-byte struct (see [`Candidate::bytes`]);
+/// a full buffer of 10,000 is about 313 MB. The features are kept whether or not the
+/// model reads them, so that the label store holds them for any later fit.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Candidate {
     pub key: TrajKey,
@@ -48,6 +50,10 @@ pub struct Candidate {
     pub actions: Vec<f32>,
     /// Ground-truth reward r per step, for scripted teachers only.
     pub truth: Vec<f32>,
+    /// Comfort features per step, `steps` rows of `FEATURES` (empty in a checkpoint of
+    /// an older build).
+    #[serde(default)]
+    pub features: Vec<f32>,
 }
 
 impl Candidate {
@@ -70,6 +76,7 @@ impl Candidate {
             obs: t.obs[..steps * t.obs_dim as usize].to_vec(),
             actions: t.actions.clone(),
             truth: t.rewards.iter().map(|r| r.truth).collect(),
+            features: t.features(),
         }
     }
 
@@ -78,11 +85,12 @@ impl Candidate {
         self.obs.len() / (self.obs_dim as usize).max(1)
     }
 
-    /// Bytes held in memory: the struct and the numbers of its three vectors (their
-    /// lengths, not capacities).
+    /// Bytes held in memory: the struct and the numbers of its vectors (their lengths,
+    /// not capacities).
     pub fn bytes(&self) -> usize {
         std::mem::size_of::<Self>()
-            + std::mem::size_of::<f32>() * (self.obs.len() + self.actions.len() + self.truth.len())
+            + std::mem::size_of::<f32>()
+                * (self.obs.len() + self.actions.len() + self.truth.len() + self.features.len())
     }
 }
 
@@ -311,6 +319,7 @@ mod tests {
             obs: vec![0.5; steps * obs_dim],
             actions: vec![0.1; steps * act_dim],
             truth: vec![-1.0; steps],
+            features: vec![0.0; steps * pbrl_common::trajectory::FEATURES],
         }
     }
 
@@ -445,20 +454,21 @@ mod tests {
     }
 
     #[test]
-    fn a_feeding_candidate_costs_26520_bytes() {
-        // By hand, obs 25, act 7, 200 steps:
-        //   numbers: 200 * 25 + 200 * 7 + 200 = 5000 + 1400 + 200 = 6600 f32 = 26,400 bytes
+    fn a_feeding_candidate_costs_31344_bytes() {
+        // By hand, obs 25, act 7, 6 features, 200 steps:
+        //   numbers: 200 * 25 + 200 * 7 + 200 + 200 * 6 = 5000 + 1400 + 200 + 1200 = 7800 f32
+        //            = 31,200 bytes
         //   struct:  key 24 (u32 + u64 + u64, padded) + seed 8 + policy_version 8
-        //            + obs_dim 4 + act_dim 4 + three Vecs 3 * 24 = 120 bytes (64-bit target)
-        //   total:   26,520 bytes; in the buffer + 24 (Arc counters, queue pointer) = 26,544
+        //            + obs_dim 4 + act_dim 4 + four Vecs 4 * 24 = 144 bytes (64-bit target)
+        //   total:   31,344 bytes; in the buffer + 24 (Arc counters, queue pointer) = 31,368
         let c = candidate(0, 200, 25, 7);
         assert_eq!(c.steps(), 200);
-        assert_eq!(std::mem::size_of::<Candidate>(), 120);
-        assert_eq!(c.bytes(), 26_520);
+        assert_eq!(std::mem::size_of::<Candidate>(), 144);
+        assert_eq!(c.bytes(), 31_344);
         let mut b = AnnotationBuffer::new(10);
         b.push(c.clone());
         b.push(c);
-        assert_eq!(b.bytes(), 2 * 26_544);
+        assert_eq!(b.bytes(), 2 * 31_368);
     }
 
     #[test]

@@ -175,9 +175,9 @@ impl TrainReward {
 
     /// The learnt part for rows `obs` x `act` (`[n, 1]`): the state-entropy bonus while
     /// pretraining, r_hat after.
-    fn learnt(&mut self, obs: &Tensor, act: &Tensor) -> Result<Tensor> {
+    fn learnt(&mut self, obs: &Tensor, act: &Tensor, features: Option<&Tensor>) -> Result<Tensor> {
         if let Some(model) = &self.model {
-            return Ok(model.predict_tensor(obs, act)?);
+            return Ok(model.predict_tensor(obs, act, features)?);
         }
         let n = obs.dim(0)?;
         let entropy = self
@@ -195,10 +195,10 @@ impl TrainReward {
         Ok(match self.source {
             RewardSource::Truth => b.truth.clone(),
             RewardSource::Task => b.task.clone(),
-            RewardSource::Pref => self.learnt(&b.obs, &b.act)?,
+            RewardSource::Pref => self.learnt(&b.obs, &b.act, b.features.as_ref())?,
             RewardSource::Decoupled => {
                 let l = self.lambda(t);
-                let learnt = self.learnt(&b.obs, &b.act)?;
+                let learnt = self.learnt(&b.obs, &b.act, b.features.as_ref())?;
                 if self.pretraining() {
                     learnt
                 } else if self.lambda_scale && l > 1.0 {
@@ -233,7 +233,14 @@ impl TrainReward {
                     } else {
                         let obs = Tensor::from_slice(rows, (n, o), &Device::Cpu)?;
                         let act = Tensor::from_slice(&tr.actions, (n, a), &Device::Cpu)?;
-                        self.learnt(&obs, &act)?.flatten_all()?.to_vec1::<f32>()?
+                        let features = Tensor::from_vec(
+                            tr.features(),
+                            (n, pbrl_common::trajectory::FEATURES),
+                            &Device::Cpu,
+                        )?;
+                        self.learnt(&obs, &act, Some(&features))?
+                            .flatten_all()?
+                            .to_vec1::<f32>()?
                     };
                     if self.source == RewardSource::Decoupled && !pretraining {
                         learnt
@@ -293,9 +300,10 @@ mod tests {
             truth: task.clone(),
             next_obs: obs.clone(),
             done: task.zeros_like().unwrap(),
+            features: None,
         };
         let r_hat: Vec<f32> = model
-            .predict_tensor(&obs, &act)
+            .predict_tensor(&obs, &act, None)
             .unwrap()
             .flatten_all()
             .unwrap()

@@ -11,6 +11,8 @@ use rand::Rng;
 pub struct Replay {
     pub(crate) obs_dim: usize,
     act_dim: usize,
+    /// Comfort features kept per transition (0: none; see [`Replay::keep_features`]).
+    feat_dim: usize,
     capacity: usize,
     len: usize,
     next: usize,
@@ -22,6 +24,7 @@ pub struct Replay {
     truth: Vec<f32>,
     next_obs: Vec<f32>,
     done: Vec<f32>,
+    feat: Vec<f32>,
 }
 
 /// A minibatch as drawn from the replay buffer: `[n, obs]`, `[n, act]`, r_task `[n, 1]`,
@@ -33,6 +36,8 @@ pub struct Batch {
     pub truth: Tensor,
     pub next_obs: Tensor,
     pub done: Tensor,
+    /// The transitions' comfort features `[n, FEATURES]`, where the buffer keeps them.
+    pub features: Option<Tensor>,
 }
 
 impl Replay {
@@ -40,6 +45,7 @@ impl Replay {
         Self {
             obs_dim,
             act_dim,
+            feat_dim: 0,
             capacity,
             len: 0,
             next: 0,
@@ -50,7 +56,18 @@ impl Replay {
             truth: Vec::new(),
             next_obs: Vec::new(),
             done: Vec::new(),
+            feat: Vec::new(),
         }
+    }
+
+    /// Keep `n` comfort features per transition from now on (a reward model that reads
+    /// them relabels each minibatch); set on an empty buffer, before a restore.
+    pub fn keep_features(&mut self, n: usize) {
+        assert!(
+            self.total == 0,
+            "features are kept from a buffer's first transition"
+        );
+        self.feat_dim = n;
     }
 
     pub fn len(&self) -> usize {
@@ -61,7 +78,8 @@ impl Replay {
         self.len == 0
     }
 
-    /// Store one transition with its rewards `[r_task, truth]`.
+    /// Store one transition with its rewards `[r_task, truth]` and its comfort features
+    /// (read only where the buffer keeps them: `feat_dim` numbers).
     pub fn push(
         &mut self,
         obs: &[f32],
@@ -69,9 +87,12 @@ impl Replay {
         rewards: [f32; 2],
         next_obs: &[f32],
         done: bool,
+        features: &[f32],
     ) {
-        let (o, a, i) = (self.obs_dim, self.act_dim, self.next);
+        let (o, a, f, i) = (self.obs_dim, self.act_dim, self.feat_dim, self.next);
+        let features = &features[..f];
         if self.len < self.capacity {
+            self.feat.extend_from_slice(features);
             self.obs.extend_from_slice(obs);
             self.act.extend_from_slice(act);
             self.task.push(rewards[0]);
@@ -86,14 +107,16 @@ impl Replay {
             self.truth[i] = rewards[1];
             self.next_obs[i * o..(i + 1) * o].copy_from_slice(next_obs);
             self.done[i] = done as u8 as f32;
+            self.feat[i * f..(i + 1) * f].copy_from_slice(features);
         }
         self.next = (self.next + 1) % self.capacity;
         self.total += 1;
     }
 
-    /// Numbers per transition in [`Replay::rows`]: obs, act, r_task, truth, next obs, done.
+    /// Numbers per transition in [`Replay::rows`]: obs, act, r_task, truth, next obs, done,
+    /// then the features where kept.
     pub fn row_len(&self) -> usize {
-        2 * self.obs_dim + self.act_dim + 3
+        2 * self.obs_dim + self.act_dim + 3 + self.feat_dim
     }
 
     /// Transitions `start..end` (counted from the start of the run; all still held), one
@@ -103,7 +126,7 @@ impl Replay {
             start <= end && end <= self.total && start + self.len as u64 >= self.total,
             "transitions {start}..{end} are not all in the buffer"
         );
-        let (o, a) = (self.obs_dim, self.act_dim);
+        let (o, a, f) = (self.obs_dim, self.act_dim, self.feat_dim);
         let mut out = Vec::with_capacity((end - start) as usize * self.row_len());
         for n in start..end {
             // NOTE: transition n sits at (n mod capacity): the ring fills in order.
@@ -114,6 +137,7 @@ impl Replay {
             out.push(self.truth[i]);
             out.extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
             out.push(self.done[i]);
+            out.extend_from_slice(&self.feat[i * f..(i + 1) * f]);
         }
         out
     }
@@ -138,6 +162,7 @@ impl Replay {
         }
         // A full ring: transition k sits at k mod capacity.
         let (o, a, c) = (self.obs_dim, self.act_dim, self.capacity);
+        self.feat = vec![0.0; c * self.feat_dim];
         self.obs = vec![0.0; c * o];
         self.act = vec![0.0; c * a];
         self.task = vec![0.0; c];
@@ -148,12 +173,8 @@ impl Replay {
         let skip = (end - c as u64 - start) as usize;
         self.total = end - c as u64;
         self.next = (self.total % c as u64) as usize;
-        for r in rows.chunks_exact(self.row_len()).skip(skip) {
-            let (obs, rest) = r.split_at(o);
-            let (act, rest) = rest.split_at(a);
-            let (next_obs, done) = rest[2..].split_at(o);
-            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
-        }
+        let rows = &rows[skip * self.row_len()..];
+        self.push_rows(rows);
         Ok(())
     }
 
@@ -163,8 +184,9 @@ impl Replay {
         for r in rows.chunks_exact(self.row_len()) {
             let (obs, rest) = r.split_at(o);
             let (act, rest) = rest.split_at(a);
-            let (next_obs, done) = rest[2..].split_at(o);
-            self.push(obs, act, [rest[0], rest[1]], next_obs, done[0] > 0.5);
+            let (next_obs, rest) = rest[2..].split_at(o);
+            let task_truth = [r[o + a], r[o + a + 1]];
+            self.push(obs, act, task_truth, next_obs, rest[0] > 0.5, &rest[1..]);
         }
     }
 
@@ -195,6 +217,10 @@ impl Replay {
             truth: rows(&self.truth, 1)?,
             next_obs: rows(&self.next_obs, self.obs_dim)?,
             done: rows(&self.done, 1)?,
+            features: match self.feat_dim {
+                0 => None,
+                f => Some(rows(&self.feat, f)?),
+            },
         })
     }
 }
@@ -209,7 +235,7 @@ mod tests {
         let mut r = Replay::new(1, 1, 50);
         // 130 transitions through a ring of 50: it holds 80..130, the newest 10 are 120..130.
         for k in 0..130 {
-            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false);
+            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false, &[]);
         }
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         let b = r.sample(&mut rng, 64, (16, 10)).unwrap();
@@ -225,7 +251,7 @@ mod tests {
         // Not full yet: the newest are just below `len`.
         let mut r = Replay::new(1, 1, 50);
         for k in 0..20 {
-            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false);
+            r.push(&[k as f32], &[0.0], [0.0, 0.0], &[0.0], false, &[]);
         }
         let b = r.sample(&mut rng, 8, (8, 5)).unwrap();
         let obs = b.obs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
@@ -243,6 +269,7 @@ mod tests {
                 [x * 10.0, -x],
                 &[x + 1.0, 0.0],
                 k % 4 == 0,
+                &[],
             );
         }
         // The last 5 transitions (8..13), the ring wrapped twice.
@@ -255,7 +282,14 @@ mod tests {
         // Not full yet: rows from the start.
         let mut d = Replay::new(2, 1, 50);
         for k in 0..13 {
-            d.push(&[k as f32, 1.0], &[0.0], [1.0, 2.0], &[0.0, 2.0], false);
+            d.push(
+                &[k as f32, 1.0],
+                &[0.0],
+                [1.0, 2.0],
+                &[0.0, 2.0],
+                false,
+                &[],
+            );
         }
         let mut c = Replay::new(2, 1, 50);
         c.restore(0, &d.rows(0, 13)).unwrap();
@@ -265,5 +299,49 @@ mod tests {
         );
         // Rows that do not reach back far enough are refused.
         assert!(Replay::new(2, 1, 5).restore(9, &a.rows(9, 13)).is_err());
+    }
+
+    #[test]
+    fn a_replay_that_keeps_features_saves_restores_and_samples_them() {
+        use rand::SeedableRng;
+        let filled = |capacity| {
+            let mut r = Replay::new(1, 1, capacity);
+            r.keep_features(2);
+            for k in 0..13 {
+                let x = k as f32;
+                r.push(
+                    &[x],
+                    &[0.0],
+                    [x, -x],
+                    &[x + 1.0],
+                    false,
+                    &[x, 10.0 * x, 99.0],
+                );
+            }
+            r
+        };
+        let a = filled(5);
+        assert_eq!(a.row_len(), 8);
+        assert_eq!(&a.rows(12, 13)[6..], &[12.0, 120.0]);
+        for (start, capacity) in [(8, 5), (0, 50)] {
+            let mut b = Replay::new(1, 1, capacity);
+            b.keep_features(2);
+            let src = filled(capacity);
+            b.restore(start, &src.rows(start, 13)).unwrap();
+            assert_eq!((&b.feat, &b.obs, b.next), (&src.feat, &src.obs, src.next));
+        }
+        // Each sampled row's features are its transition's.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let batch = a.sample(&mut rng, 16, (0, 0)).unwrap();
+        let obs = batch.obs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let f = batch.features.unwrap().to_vec2::<f32>().unwrap();
+        for (o, f) in obs.iter().zip(&f) {
+            assert_eq!(f, &vec![*o, 10.0 * o]);
+        }
+        // A buffer that keeps none gives none.
+        let mut r = Replay::new(1, 1, 4);
+        r.push(&[0.0], &[0.0], [0.0, 0.0], &[0.0], false, &[1.0; 6]);
+        assert!(r.sample(&mut rng, 2, (0, 0)).unwrap().features.is_none());
+        assert_eq!(r.row_len(), 6);
     }
 }

@@ -227,6 +227,12 @@ impl Sac {
         self.replay.rows(from, to)
     }
 
+    /// Keep each transition's comfort features in the replay (a reward model that reads
+    /// them relabels the minibatches); before the first trajectory and any restore.
+    pub fn keep_features(&mut self) {
+        self.replay.keep_features(pbrl_common::trajectory::FEATURES);
+    }
+
     /// Refill the empty replay from rows of transitions `from..` ([`Replay::restore`]).
     pub fn restore_replay(&mut self, from: u64, rows: &[f32]) -> Result<()> {
         self.replay.restore(from, rows)
@@ -327,6 +333,7 @@ impl Sac {
                 [r.task, r.truth],
                 t.obs_at(k + 1),
                 done,
+                &r.features(),
             );
         }
         self.env_steps += t.steps() as u64;

@@ -107,6 +107,9 @@ impl Backbone {
             Algo::Sac => {
                 let mut sac = Sac::new(cfg.sac.clone(), cfg.obs_dim, cfg.act_dim)?;
                 sac.set_threads(threads)?;
+                if cfg.reward.learnt() && cfg.pref.model.features {
+                    sac.keep_features();
+                }
                 Backbone::Sac(Box::new(sac))
             }
             Algo::Ppo => {

@@ -274,7 +274,12 @@ pub fn open_folder(
                 let bytes = folder.read(&c, "state.bin")?;
                 let (saved, _): (Saved, usize) =
                     bincode::serde::decode_from_slice(&bytes, bincode::config::standard())
-                        .with_context(|| format!("decoding {}/state.bin", c.dir.display()))?;
+                        .with_context(|| {
+                            format!(
+                                "decoding {}/state.bin (written by another build of pbrl? resume it with that build, or start over with --fresh)",
+                                c.dir.display()
+                            )
+                        })?;
                 load_networks(
                     &c.dir,
                     backbone

@@ -243,6 +243,7 @@ fn label_efficiency_off() -> Vec<Setting> {
         ("reward_crops", "/pref/model/crops", json!(0)),
         ("sac_hybrid_share", "/sac/hybrid_share", json!(0.0)),
         ("reward_anchor", "/pref/model/anchor", json!(0.0)),
+        ("reward_features", "/pref/model/features", json!(false)),
     ]
 }
 

@@ -117,7 +117,15 @@ pub fn rhat_tracking(model: &RewardModel, episodes: &[EvalSteps]) -> Result<Trac
             );
             continue;
         }
-        let r = model.predict(&e.obs, &e.actions)?;
+        if model.feat_dim() > 0 && e.features.len() != n * model.feat_dim() {
+            tracing::warn!(
+                steps = n,
+                features = e.features.len(),
+                "an evaluation episode came without the comfort features the reward model reads; left out"
+            );
+            continue;
+        }
+        let r = model.predict(&e.obs, &e.actions, &e.features)?;
         sum_hat.push(r.iter().map(|x| *x as f64).sum());
         sum_true.push(e.truth.iter().map(|x| *x as f64).sum());
         step_hat.extend(r.iter().map(|x| *x as f64));

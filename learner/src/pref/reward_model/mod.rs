@@ -28,6 +28,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use pbrl_common::trajectory::FEATURES;
+
 use crate::optim::{Adam, AdamState};
 use crate::state::RngState;
 
@@ -144,6 +146,19 @@ pub struct RewardModelConfig {
     #[arg(id = "reward_anchor", long = "reward-anchor", default_value_t = 0.0)]
     #[serde(default)]
     pub anchor: f64,
+    /// Reward ensemble: read each step's designer-computed comfort features beside the
+    /// observation (food eaten, EE speed, force on the person, the spoon's force over
+    /// 10 N, food hits, eaten food's speed: the measurements behind the paper's preference
+    /// terms, unweighted, through sign(x) ln(1 + |x|); `StepRewards::features`). What a
+    /// person makes of them is still learnt, and so is any taste outside them. Off: the
+    /// authors' (observation and action only).
+    #[arg(
+        id = "reward_features",
+        long = "reward-features",
+        default_value_t = false
+    )]
+    #[serde(default)]
+    pub features: bool,
     /// Where the observation holds the vector to the goal (first index, length): the
     /// task's, filled by the binary (feeding: spoon minus mouth; point: goal minus point).
     #[arg(skip)]
@@ -186,13 +201,56 @@ pub fn task_reward(row: &[f32], [at, len]: [usize; 2]) -> f32 {
 }
 
 /// A trajectory as the reward model sees it: `steps` rows of raw obs and of actions (the
-/// obs after the last action is not included).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// obs after the last action is not included), and the steps' comfort features where known.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Segment {
     /// `steps * obs_dim` raw observations, row-major.
     pub obs: Vec<f32>,
     /// `steps * act_dim` actions, row-major.
     pub actions: Vec<f32>,
+    /// `steps * FEATURES` comfort features ([`pbrl_common::StepRewards::features`]),
+    /// row-major; empty where unknown (read only by a model with `features` on).
+    #[serde(default)]
+    pub features: Vec<f32>,
+}
+
+impl Segment {
+    /// Steps `start .. start + len` of `steps` (bounds checked by the caller).
+    pub fn cut(&self, start: usize, len: usize, steps: usize) -> Segment {
+        Segment::of(
+            &self.obs,
+            &self.actions,
+            &self.features,
+            (start, len),
+            steps,
+        )
+    }
+
+    /// Steps `start .. start + len` of the rows `obs`, `actions` and `features`, which
+    /// hold `steps` rows each (features may be empty).
+    pub fn of(
+        obs: &[f32],
+        actions: &[f32],
+        features: &[f32],
+        (start, len): (usize, usize),
+        steps: usize,
+    ) -> Segment {
+        let rows = |xs: &[f32]| {
+            let w = xs.len() / steps.max(1);
+            xs[start * w..(start + len) * w].to_vec()
+        };
+        Segment {
+            obs: rows(obs),
+            actions: rows(actions),
+            features: rows(features),
+        }
+    }
+}
+
+/// A comfort feature as the network reads it: sign(x) ln(1 + |x|) (counts, speeds and
+/// forces of very different scales, most steps zero; no normaliser to fit).
+fn squash(x: f32) -> f32 {
+    x.signum() * x.abs().ln_1p()
 }
 
 /// One label of D: target = probability that `second` is preferred (0, 1 or 0.5).
@@ -289,6 +347,8 @@ pub struct RewardModel {
     cfg: RewardModelConfig,
     obs_dim: usize,
     act_dim: usize,
+    /// Comfort features per step read (0: off).
+    feat_dim: usize,
     nets: Vec<Owned<RewardNet>>,
     opts: Vec<Adam>,
     norm: ObsNorm,
@@ -321,11 +381,12 @@ impl RewardModel {
                 ),
             }
         }
+        let feat_dim = if cfg.features { FEATURES } else { 0 };
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let nets = (0..cfg.members)
             .map(|_| {
                 Owned::build(&mut rng, |vb| {
-                    RewardNet::new(vb, obs_dim + act_dim, &cfg.hidden)
+                    RewardNet::new(vb, obs_dim + feat_dim + act_dim, &cfg.hidden)
                 })
             })
             .collect::<Result<Vec<_>>>()?;
@@ -337,6 +398,7 @@ impl RewardModel {
             cfg,
             obs_dim,
             act_dim,
+            feat_dim,
             nets,
             opts,
             norm: ObsNorm::identity(obs_dim),
@@ -355,6 +417,11 @@ impl RewardModel {
 
     pub fn act_dim(&self) -> usize {
         self.act_dim
+    }
+
+    /// Comfort features read per step (0: the model reads none).
+    pub fn feat_dim(&self) -> usize {
+        self.feat_dim
     }
 
     /// False until the first [`RewardModel::train`] on a non-empty D.
@@ -420,7 +487,7 @@ impl RewardModel {
         for (n, o) in self.nets.iter().zip(&self.opts) {
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-            let net = RewardNet::new(vb, self.obs_dim + self.act_dim, &self.cfg.hidden)?;
+            let net = RewardNet::new(vb, self.width(), &self.cfg.hidden)?;
             import(&varmap, &export(&n.varmap)?)?;
             let mut opt = Adam::for_varmap(&varmap, self.cfg.lr)?;
             opt.restore(&o.state()?)?;
@@ -431,6 +498,7 @@ impl RewardModel {
             cfg: self.cfg.clone(),
             obs_dim: self.obs_dim,
             act_dim: self.act_dim,
+            feat_dim: self.feat_dim,
             nets,
             opts,
             norm: self.norm.clone(),
@@ -455,6 +523,11 @@ impl RewardModel {
         self.anchor_rows(&seg.obs).map_or(0.0, |a| a.iter().sum())
     }
 
+    /// Numbers per network input row: observation, features, action.
+    fn width(&self) -> usize {
+        self.obs_dim + self.feat_dim + self.act_dim
+    }
+
     /// Steps of `seg`, checked against the model's dimensions.
     fn steps(&self, seg: &Segment) -> Result<usize> {
         let steps = seg.obs.len() / self.obs_dim;
@@ -470,18 +543,36 @@ impl RewardModel {
                 self.act_dim
             );
         }
+        self.check_features(steps, seg.features.len())?;
         Ok(steps)
     }
 
-    /// Append the network inputs of `steps` rows: normalised, clipped observation, then
-    /// the action clipped to [-1, 1].
-    fn push_inputs(&self, obs: &[f32], actions: &[f32], out: &mut Vec<f32>) {
-        let (o, a) = (self.obs_dim, self.act_dim);
+    /// A model that reads features needs `steps` rows of them.
+    fn check_features(&self, steps: usize, found: usize) -> Result<()> {
+        if self.feat_dim > 0 && found != steps * self.feat_dim {
+            candle_core::bail!(
+                "reward_features: the reward model reads {} comfort features per step, and {steps} steps came with {found} numbers{}",
+                self.feat_dim,
+                if found == 0 {
+                    " (trajectories stored by an older build, or a task without them)"
+                } else {
+                    ""
+                }
+            );
+        }
+        Ok(())
+    }
+
+    /// Append the network inputs of `steps` rows: normalised, clipped observation, the
+    /// squashed comfort features (when read), then the action clipped to [-1, 1].
+    fn push_inputs(&self, obs: &[f32], actions: &[f32], features: &[f32], out: &mut Vec<f32>) {
+        let (o, a, f) = (self.obs_dim, self.act_dim, self.feat_dim);
         for t in 0..obs.len() / o {
             let row = &obs[t * o..(t + 1) * o];
             for ((x, m), s) in row.iter().zip(&self.norm.mean).zip(&self.norm.std) {
                 out.push(((x - m) / s).clamp(-OBS_CLIP, OBS_CLIP));
             }
+            out.extend(features[t * f..(t + 1) * f].iter().map(|x| squash(*x)));
             out.extend(
                 actions[t * a..(t + 1) * a]
                     .iter()
@@ -490,15 +581,20 @@ impl RewardModel {
         }
     }
 
+    /// The inputs of a segment's steps ([`RewardModel::push_inputs`]).
+    fn push_segment(&self, s: &Segment, out: &mut Vec<f32>) {
+        self.push_inputs(&s.obs, &s.actions, &s.features, out);
+    }
+
     fn input_tensor(&self, x: Vec<f32>) -> Result<Tensor> {
-        let width = self.obs_dim + self.act_dim;
+        let width = self.width();
         let rows = x.len() / width;
         Tensor::from_vec(x, (rows, width), &Device::Cpu)
     }
 
     /// The mean reward over members of each of `n` rows (`obs` `n * obs_dim`, `actions`
-    /// `n * act_dim`).
-    pub fn predict(&self, obs: &[f32], actions: &[f32]) -> Result<Vec<f32>> {
+    /// `n * act_dim`, `features` `n * FEATURES` for a model that reads them, else ignored).
+    pub fn predict(&self, obs: &[f32], actions: &[f32], features: &[f32]) -> Result<Vec<f32>> {
         let n = obs.len() / self.obs_dim;
         if obs.len() != n * self.obs_dim || actions.len() != n * self.act_dim {
             candle_core::bail!(
@@ -509,14 +605,16 @@ impl RewardModel {
                 self.act_dim
             );
         }
+        self.check_features(n, features.len())?;
         let mut out = Vec::with_capacity(n);
-        let (o, a) = (self.obs_dim, self.act_dim);
+        let (o, a, f) = (self.obs_dim, self.act_dim, self.feat_dim);
         for start in (0..n).step_by(CHUNK_ROWS) {
             let end = (start + CHUNK_ROWS).min(n);
-            let mut x = Vec::with_capacity((end - start) * (o + a));
+            let mut x = Vec::with_capacity((end - start) * self.width());
             self.push_inputs(
                 &obs[start * o..end * o],
                 &actions[start * a..end * a],
+                &features[start * f..end * f],
                 &mut x,
             );
             let x = self.input_tensor(x)?;
@@ -534,9 +632,15 @@ impl RewardModel {
         Ok(out)
     }
 
-    /// The mean reward over members, `[n, 1]`, of `obs` `[n, obs_dim]` and `act`
-    /// `[n, act_dim]` (a SAC minibatch), without leaving candle.
-    pub fn predict_tensor(&self, obs: &Tensor, act: &Tensor) -> Result<Tensor> {
+    /// The mean reward over members, `[n, 1]`, of `obs` `[n, obs_dim]`, `act`
+    /// `[n, act_dim]` and, for a model that reads them, the raw comfort features `[n,
+    /// FEATURES]` (a SAC minibatch), without leaving candle.
+    pub fn predict_tensor(
+        &self,
+        obs: &Tensor,
+        act: &Tensor,
+        features: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let dev = obs.device();
         let mean = Tensor::from_slice(&self.norm.mean, (1, self.obs_dim), dev)?;
         let std = Tensor::from_slice(&self.norm.std, (1, self.obs_dim), dev)?;
@@ -546,7 +650,17 @@ impl RewardModel {
             .broadcast_div(&std)?
             .clamp(-OBS_CLIP, OBS_CLIP)?;
         let a = act.to_dtype(DType::F32)?.clamp(-1f32, 1f32)?;
-        let x = Tensor::cat(&[&o, &a], D::Minus1)?;
+        let x = match (self.feat_dim, features) {
+            (0, _) => Tensor::cat(&[&o, &a], D::Minus1)?,
+            (_, Some(f)) => {
+                let f = f.to_dtype(DType::F32)?;
+                let f = (f.sign()? * f.abs()?.affine(1.0, 1.0)?.log()?)?;
+                Tensor::cat(&[&o, &f, &a], D::Minus1)?
+            }
+            (_, None) => candle_core::bail!(
+                "reward_features: the reward model reads comfort features and the minibatch has none"
+            ),
+        };
         let mut sum: Option<Tensor> = None;
         for net in &self.nets {
             let r = net.net.run(&x, None)?;
@@ -589,9 +703,9 @@ impl RewardModel {
                 rows += steps[end];
                 end += 1;
             }
-            let mut x = Vec::with_capacity(rows * (self.obs_dim + self.act_dim));
+            let mut x = Vec::with_capacity(rows * self.width());
             for s in &segs[start..end] {
-                self.push_inputs(&s.obs, &s.actions, &mut x);
+                self.push_segment(s, &mut x);
             }
             let x = self.input_tensor(x)?;
             for (m, net) in self.nets.iter().enumerate() {

@@ -20,6 +20,7 @@ fn random_segments(
                 actions: (0..steps * a)
                     .map(|_| rng.random_range(-1.2..1.2))
                     .collect(),
+                features: Vec::new(),
             })
         })
         .collect()
@@ -143,7 +144,7 @@ fn hand_gradients_are_candle_autodiffs() {
             for l in &labels {
                 for (seg, out) in [(&l.first, &mut s0), (&l.second, &mut s1)] {
                     let mut x = Vec::new();
-                    model.push_inputs(&seg.obs, &seg.actions, &mut x);
+                    model.push_segment(seg, &mut x);
                     let x = model.input_tensor(x).unwrap();
                     out.push(model.nets[m].net.forward(&x).unwrap().sum_all().unwrap());
                 }
@@ -190,7 +191,7 @@ fn r_hat_is_the_mean_of_members_in_the_open_interval() {
         .map(|i| ((i * 13 % 7) as f32 - 3.0) * 0.6)
         .collect();
     let members = reference_rewards(&model, &obs, &act);
-    let got = model.predict(&obs, &act).unwrap();
+    let got = model.predict(&obs, &act, &[]).unwrap();
     for (k, g) in got.iter().enumerate() {
         let mean = members.iter().map(|m| m[k]).sum::<f32>() / 3.0;
         assert!((g - mean).abs() < 1e-5, "row {k}: {g} vs {mean}");
@@ -200,7 +201,7 @@ fn r_hat_is_the_mean_of_members_in_the_open_interval() {
     // The tensor path gives the same.
     let ot = Tensor::from_slice(&obs, (50, 4), &Device::Cpu).unwrap();
     let at = Tensor::from_slice(&act, (50, 2), &Device::Cpu).unwrap();
-    let t = model.predict_tensor(&ot, &at).unwrap();
+    let t = model.predict_tensor(&ot, &at, None).unwrap();
     assert_eq!(t.dims(), &[50, 1]);
     let t = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     assert!(got.iter().zip(&t).all(|(a, b)| (a - b).abs() < 1e-6));
@@ -321,7 +322,11 @@ fn oracle_pairs_under(
             .map(|i| c[i % 3] + rng.random_range(-0.5..0.5))
             .collect();
         let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
-        Arc::new(Segment { obs, actions })
+        Arc::new(Segment {
+            obs,
+            actions,
+            features: Vec::new(),
+        })
     };
     let ret = |s: &Segment| -> f32 { s.obs.chunks_exact(3).map(&reward).sum() };
     (0..n)
@@ -382,8 +387,8 @@ fn state_and_restore_continue_identically() {
     assert!(b.trained());
     let seg = &d2[0].first;
     assert_eq!(
-        a.predict(&seg.obs, &seg.actions).unwrap(),
-        b.predict(&seg.obs, &seg.actions).unwrap()
+        a.predict(&seg.obs, &seg.actions, &[]).unwrap(),
+        b.predict(&seg.obs, &seg.actions, &[]).unwrap()
     );
     // A snapshot is the same model and trains apart.
     let mut c = a.snapshot().unwrap();
@@ -394,14 +399,14 @@ fn state_and_restore_continue_identically() {
         c.train(&all).unwrap(),
     );
     assert_eq!((sa, sa), (sb, sc));
-    let p = a.predict(&seg.obs, &seg.actions).unwrap();
-    assert_eq!(p, b.predict(&seg.obs, &seg.actions).unwrap());
-    assert_eq!(p, c.predict(&seg.obs, &seg.actions).unwrap());
+    let p = a.predict(&seg.obs, &seg.actions, &[]).unwrap();
+    assert_eq!(p, b.predict(&seg.obs, &seg.actions, &[]).unwrap());
+    assert_eq!(p, c.predict(&seg.obs, &seg.actions, &[]).unwrap());
     assert_eq!(a.state().unwrap(), b.state().unwrap());
     c.train(&d1).unwrap();
     assert_eq!(
         p,
-        a.predict(&seg.obs, &seg.actions).unwrap(),
+        a.predict(&seg.obs, &seg.actions, &[]).unwrap(),
         "training the snapshot leaves the original"
     );
     // A state of another shape is refused.
@@ -480,10 +485,12 @@ fn malformed_segments_and_targets_are_refused() {
     let good = Arc::new(Segment {
         obs: vec![0.0; 6],
         actions: vec![0.0; 2],
+        features: Vec::new(),
     });
     let bad = Arc::new(Segment {
         obs: vec![0.0; 6],
         actions: vec![0.0; 3],
+        features: Vec::new(),
     });
     let l = |a: &Arc<Segment>, t| {
         vec![Labelled {
@@ -494,7 +501,7 @@ fn malformed_segments_and_targets_are_refused() {
     };
     assert!(model.train(&l(&bad, 1.0)).is_err());
     assert!(model.train(&l(&good, 1.5)).is_err());
-    assert!(model.predict(&[0.0; 5], &[0.0; 2]).is_err());
+    assert!(model.predict(&[0.0; 5], &[0.0; 2], &[]).is_err());
     let stats = model.train(&[]).unwrap();
     assert_eq!(stats.epochs, 0);
     assert!(!model.trained());
@@ -507,6 +514,7 @@ fn crops_are_equal_length_sub_snippets_within_each_side_and_golden_for_a_seed() 
         Arc::new(Segment {
             obs: (0..50).map(|k| base + k as f32).collect(),
             actions: vec![0.0; 50],
+            features: Vec::new(),
         })
     };
     let data = vec![Labelled {
@@ -589,8 +597,8 @@ fn the_anchor_adds_c_r_task_to_every_reward_and_return() {
     };
     for s in &segs {
         let (p, a) = (
-            plain.predict(&s.obs, &s.actions).unwrap(),
-            anchored.predict(&s.obs, &s.actions).unwrap(),
+            plain.predict(&s.obs, &s.actions, &[]).unwrap(),
+            anchored.predict(&s.obs, &s.actions, &[]).unwrap(),
         );
         let c = task(&s.obs);
         for i in 0..p.len() {
@@ -598,7 +606,7 @@ fn the_anchor_adds_c_r_task_to_every_reward_and_return() {
         }
         let obs = Tensor::from_slice(&s.obs, (9, 4), &Device::Cpu).unwrap();
         let act = Tensor::from_slice(&s.actions, (9, 2), &Device::Cpu).unwrap();
-        let t = anchored.predict_tensor(&obs, &act).unwrap();
+        let t = anchored.predict_tensor(&obs, &act, None).unwrap();
         let t: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
         for i in 0..p.len() {
             assert!((t[i] - a[i]).abs() < 1e-5, "tensor row {i}");
@@ -652,7 +660,7 @@ fn an_anchored_model_learns_what_the_task_does_not_say() {
         };
         let mut model = RewardModel::new(cfg, 3, 1).unwrap();
         model.train(&data).unwrap();
-        let r = model.predict(&probe, &probe_act).unwrap();
+        let r = model.predict(&probe, &probe_act, &[]).unwrap();
         let r_hat: Vec<f32> = r
             .iter()
             .zip(&rows)
@@ -708,4 +716,154 @@ fn pseudo_labels_do_not_count_in_the_accuracy() {
     let all = plain.train(&joined).unwrap();
     assert!((all.accuracy - 0.5).abs() < 1e-12, "{}", all.accuracy);
     assert!((before - 0.5).abs() > 1e-6, "the check can tell: {before}");
+}
+
+/// `n` labelled pairs of `steps`-step segments with 3 observation numbers and the six
+/// comfort features (sparse counts, speeds, forces, as the feeding world's), the oracle
+/// preferring the higher return of `reward(obs row, feature row)`.
+fn pairs_with_features(
+    rng: &mut impl Rng,
+    n: usize,
+    steps: usize,
+    reward: impl Fn(&[f32], &[f32]) -> f32,
+) -> Vec<Labelled> {
+    let mut segment = || {
+        let c: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let obs = (0..steps * 3)
+            .map(|i| c[i % 3] + rng.random_range(-0.5..0.5))
+            .collect();
+        let actions = (0..steps).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let p_eat = rng.random_range(0.0..0.3);
+        let features = (0..steps)
+            .flat_map(|_| {
+                let eaten = rng.random_bool(p_eat) as u8 as f32;
+                let force = if rng.random_bool(0.2) {
+                    rng.random_range(0.0..20.0)
+                } else {
+                    0.0
+                };
+                [
+                    eaten,
+                    rng.random_range(0.0..0.5),
+                    force,
+                    if force >= 10.0 { force } else { 0.0 },
+                    rng.random_bool(0.05) as u8 as f32,
+                    eaten * rng.random_range(0.0..0.5),
+                ]
+            })
+            .collect();
+        Arc::new(Segment {
+            obs,
+            actions,
+            features,
+        })
+    };
+    let ret = |s: &Segment| -> f32 {
+        s.obs
+            .chunks_exact(3)
+            .zip(s.features.chunks_exact(FEATURES))
+            .map(|(o, f)| reward(o, f))
+            .sum()
+    };
+    (0..n)
+        .map(|_| {
+            let (first, second) = (segment(), segment());
+            let target = if ret(&second) > ret(&first) { 1.0 } else { 0.0 };
+            Labelled {
+                first,
+                second,
+                target,
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn comfort_features_are_read_beside_the_observation_and_required_when_on() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let data = pairs_with_features(&mut rng, 4, 9, |o, _| o[0]);
+    let cfg = RewardModelConfig {
+        features: true,
+        ..small(3, &[8, 8])
+    };
+    let model = RewardModel::new(cfg, 3, 1).unwrap();
+    assert_eq!(
+        (model.feat_dim(), model.width()),
+        (FEATURES, 3 + FEATURES + 1)
+    );
+    let plain = RewardModel::new(small(3, &[8, 8]), 3, 1).unwrap();
+    for s in data.iter().flat_map(|l| [&l.first, &l.second]) {
+        let host = model.predict(&s.obs, &s.actions, &s.features).unwrap();
+        let t = |xs: &[f32], w: usize| Tensor::from_slice(xs, (9, w), &Device::Cpu).unwrap();
+        let (obs, act, f) = (t(&s.obs, 3), t(&s.actions, 1), t(&s.features, FEATURES));
+        let tensor: Vec<f32> = model
+            .predict_tensor(&obs, &act, Some(&f))
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        for (h, t) in host.iter().zip(&tensor) {
+            assert!((h - t).abs() < 1e-5, "{h} vs {t}");
+        }
+        // The features change the reward (the network reads them).
+        let zeros = vec![0.0; s.features.len()];
+        let without = model.predict(&s.obs, &s.actions, &zeros).unwrap();
+        assert!(host.iter().zip(&without).any(|(a, b)| (a - b).abs() > 1e-4));
+        // A model without features ignores them.
+        assert_eq!(
+            plain.predict(&s.obs, &s.actions, &s.features).unwrap(),
+            plain.predict(&s.obs, &s.actions, &[]).unwrap()
+        );
+        // A model with features refuses steps without them, by name.
+        let e = model.predict(&s.obs, &s.actions, &[]).unwrap_err();
+        assert!(e.to_string().contains("reward_features"), "{e}");
+        assert!(model.returns(&s.cut(0, 9, 9)).is_ok());
+        let bare = Segment {
+            features: Vec::new(),
+            ..(**s).clone()
+        };
+        let e = model.returns(&bare).unwrap_err();
+        assert!(e.to_string().contains("reward_features"), "{e}");
+        assert!(model.predict_tensor(&obs, &act, None).is_err());
+    }
+    // The squash keeps the sign and compresses the scale.
+    assert_eq!(squash(0.0), 0.0);
+    assert!((squash(-20.0) + 21f32.ln()).abs() < 1e-6);
+}
+
+/// The features make a taste written in them learnable from few labels, and a taste that
+/// is not a function of them is learnt as well as without them: the model still reads the
+/// observation.
+#[test]
+fn a_taste_in_the_features_is_learnt_and_one_outside_them_still_is() {
+    let in_features = |_: &[f32], f: &[f32]| 5.0 * f[0] - 2.0 * f[1] - 0.1 * f[2];
+    let outside = |o: &[f32], _: &[f32]| -o[0].abs();
+    let accuracy = |reward: &dyn Fn(&[f32], &[f32]) -> f32, features: bool| {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let train = pairs_with_features(&mut rng, 150, 20, reward);
+        let held_out = pairs_with_features(&mut rng, 300, 20, reward);
+        let cfg = RewardModelConfig {
+            batch: 32,
+            lr: 1e-3,
+            features,
+            ..small(0, &[64, 64])
+        };
+        let mut model = RewardModel::new(cfg, 3, 1).unwrap();
+        model.train(&train).unwrap();
+        model.accuracy(&held_out).unwrap()
+    };
+    let (inside_on, inside_off) = (accuracy(&in_features, true), accuracy(&in_features, false));
+    let (outside_on, outside_off) = (accuracy(&outside, true), accuracy(&outside, false));
+    println!(
+        "held-out accuracy: taste in the features {inside_on:.3} with them, {inside_off:.3} \
+         without; taste outside them {outside_on:.3} with, {outside_off:.3} without"
+    );
+    assert!(inside_on > 0.8, "{inside_on}");
+    assert!(inside_on > inside_off + 0.2, "{inside_on} vs {inside_off}");
+    assert!(outside_on > 0.85, "{outside_on}");
+    assert!(
+        outside_on > outside_off - 0.05,
+        "{outside_on} vs {outside_off}"
+    );
 }

@@ -69,7 +69,6 @@ impl RewardModel {
                 "reward_crop_min {lo} and reward_crop_max {hi} must satisfy 0 < min <= max <= 1"
             );
         }
-        let (o, a) = (self.obs_dim, self.act_dim);
         let mut out = data.to_vec();
         out.reserve(data.len() * self.cfg.crops);
         for l in data {
@@ -83,10 +82,7 @@ impl RewardModel {
                 let len = self.rng.random_range(min_len..=max_len.max(min_len));
                 let mut cut = |s: &Segment, n: usize| {
                     let start = self.rng.random_range(0..=n - len);
-                    Arc::new(Segment {
-                        obs: s.obs[start * o..(start + len) * o].to_vec(),
-                        actions: s.actions[start * a..(start + len) * a].to_vec(),
-                    })
+                    Arc::new(s.cut(start, len, n))
                 };
                 let first = cut(&l.first, n0);
                 let second = cut(&l.second, n1);
@@ -159,10 +155,10 @@ impl RewardModel {
                 steps.push(s);
                 end += 1;
             }
-            let mut x = Vec::with_capacity(rows * (self.obs_dim + self.act_dim));
+            let mut x = Vec::with_capacity(rows * self.width());
             for l in &pairs[start..end] {
-                self.push_inputs(&l.first.obs, &l.first.actions, &mut x);
-                self.push_inputs(&l.second.obs, &l.second.actions, &mut x);
+                self.push_segment(&l.first, &mut x);
+                self.push_segment(&l.second, &mut x);
             }
             let mut tape = Vec::with_capacity(net.layers.len());
             let r = net
