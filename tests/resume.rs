@@ -125,7 +125,9 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
     // loop: the ensemble and its optimiser, the annotation buffer, the label store, the
     // counters; the first session at 1,200 env steps, the second at 2,700). And with the
     // label-efficiency pieces, each of which draws from a generator the checkpoint keeps:
-    // segments, policy-aligned queries, crops, pseudo-labels and hybrid replay.
+    // segments, policy-aligned queries, crops, pseudo-labels and hybrid replay (with the
+    // anchor and the comfort features: the replay's saved rows then carry them, all zero
+    // on the point task; their values are checked by the replay's own unit test).
     let pref_nets = &[
         "policy",
         "critic",
@@ -141,6 +143,8 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
         "--pseudo-pairs=20",
         "--sac-hybrid-share=0.5",
         "--sac-hybrid-steps=300",
+        "--reward-features",
+        "--reward-anchor=1",
     ][..];
     for (reward, nets, extra) in [
         ("truth", &["policy", "critic", "target_critic"][..], &[][..]),

@@ -21,7 +21,7 @@ pub const FEATURE_NAMES: [&str; FEATURES] = [
     "eaten",
     "ee_speed",
     "force",
-    "spoon_force_over_10N",
+    "spoon_force_high",
     "food_hits",
     "eaten_speed",
 ];
@@ -46,8 +46,9 @@ impl StepRewards {
     /// beside the observation (`--reward-features`): the measurements behind the paper's
     /// preference terms but C_d (which the observation holds), unweighted and as
     /// magnitudes: food eaten, EE speed, contact force on the person, the spoon's force
-    /// where it is 10 N or more, new food hits on the person, the summed speed of the food
-    /// eaten. They say what happened, not how a person weighs it: the weights, and any
+    /// where it reaches the profile's high-force threshold (10 N by default; the spoon's
+    /// force is also the observation's last number, one step later), new food hits on the
+    /// person, the summed speed of the food eaten. They say what happened, not how a person weighs it: the weights, and any
     /// taste outside them, are what the labels teach. Zero on tasks without them.
     pub fn features(&self) -> [f32; FEATURES] {
         let mut f = [0f32; FEATURES];

@@ -727,6 +727,12 @@ impl Feedback {
         self.model.networks()
     }
 
+    /// The annotation buffer's comfort features, which a checkpoint keeps apart
+    /// ([`crate::run::checkpoint::Saved::buffer_features`]).
+    pub fn buffer_features(&self) -> Vec<Vec<f32>> {
+        self.buffer.features()
+    }
+
     pub fn state(&self) -> Result<FeedbackState> {
         Ok(FeedbackState {
             counters: self.counters.clone(),

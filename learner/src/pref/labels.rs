@@ -139,7 +139,8 @@ UPDATE meta SET value = '3' WHERE key = 'schema';
 /// What schema 4 added to schema 3: each trajectory's comfort features per step (NULL for
 /// the trajectories an older build stored, which did not keep them).
 const MIGRATE_3_TO_4: &str = "
-ALTER TABLE trajectories ADD COLUMN features BLOB;
+ALTER TABLE trajectories ADD COLUMN features BLOB
+    CHECK (features IS NULL OR length(features) % (4 * steps) = 0);
 UPDATE meta SET value = '4' WHERE key = 'schema';
 ";
 
@@ -960,6 +961,14 @@ fn put_trajectory(tx: &Transaction<'_>, t: &StoredTrajectory<'_>) -> Result<u64>
                 t.key()
             );
         }
+        // NOTE: a trajectory stored without features (by an older build) gains them.
+        if !t.features.is_empty() {
+            tx.execute(
+                "UPDATE trajectories SET features = ?1 WHERE id = ?2 AND features IS NULL",
+                params![to_blob(t.features), id],
+            )
+            .with_context(context)?;
+        }
         return Ok(uint(id));
     }
     tx.execute(
@@ -1323,6 +1332,16 @@ mod tests {
         let asked = store.ask(2, "uniform", 10, 5, &sa, &sb, message).unwrap();
         answer(&mut store, asked.query, Preference::First);
         assert!(store.segment(rows[0].first).unwrap().features.is_empty());
+        // Asked again with its features, an older trajectory gains them.
+        let old = traj(0, 1, 3);
+        let mut again = stored(&old);
+        let old_features = vec![1.5; 3 * 6];
+        again.features = &old_features;
+        let re = store
+            .ask(2, "uniform", 10, 5, &again, &sb, message)
+            .unwrap();
+        assert_eq!(re.first, rows[0].first, "the same trajectory");
+        assert_eq!(store.segment(re.first).unwrap().features, old_features);
         assert_eq!(store.segment(asked.first).unwrap().features, features);
         assert!(store.segment(asked.second).unwrap().features.is_empty());
         let mut ragged = stored(&a);

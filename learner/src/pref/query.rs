@@ -50,9 +50,10 @@ pub struct Candidate {
     pub actions: Vec<f32>,
     /// Ground-truth reward r per step, for scripted teachers only.
     pub truth: Vec<f32>,
-    /// Comfort features per step, `steps` rows of `FEATURES` (empty in a checkpoint of
-    /// an older build).
-    #[serde(default)]
+    /// Comfort features per step, `steps` rows of `FEATURES`. Not in the candidate's own
+    /// serialised form (a checkpoint's annotation buffer keeps the layout of the builds
+    /// before them): the checkpoint carries them apart ([`AnnotationBuffer::features`]).
+    #[serde(skip)]
     pub features: Vec<f32>,
 }
 
@@ -175,6 +176,31 @@ impl AnnotationBuffer {
     /// Items from the oldest to the newest.
     pub fn iter(&self) -> impl Iterator<Item = &Arc<Candidate>> {
         self.items.iter()
+    }
+
+    /// Every candidate's comfort features, oldest first (what a checkpoint keeps beside
+    /// the buffer).
+    pub fn features(&self) -> Vec<Vec<f32>> {
+        self.items.iter().map(|c| c.features.clone()).collect()
+    }
+
+    /// Give the candidates back their comfort features ([`AnnotationBuffer::features`]);
+    /// none (a checkpoint of an older build) leaves them without.
+    pub fn attach_features(&mut self, features: Vec<Vec<f32>>) -> anyhow::Result<()> {
+        if features.is_empty() {
+            return Ok(());
+        }
+        if features.len() != self.items.len() {
+            anyhow::bail!(
+                "the checkpoint holds comfort features for {} trajectories and {} in the annotation buffer",
+                features.len(),
+                self.items.len()
+            );
+        }
+        for (c, f) in self.items.iter_mut().zip(features) {
+            Arc::make_mut(c).features = f;
+        }
+        Ok(())
     }
 
     /// Bytes held: each candidate's [`Candidate::bytes`] plus its `Arc` (two counters) and
@@ -447,8 +473,11 @@ mod tests {
         let snap = b.clone();
         assert!(Arc::ptr_eq(snap.get(1), b.get(1)));
         let json = serde_json::to_string(&b).unwrap();
-        let back: AnnotationBuffer = serde_json::from_str(&json).unwrap();
+        let mut back: AnnotationBuffer = serde_json::from_str(&json).unwrap();
         assert_eq!(back.capacity(), 4);
+        // The features travel apart (a checkpoint keeps them beside the buffer).
+        assert!(back.iter().all(|c| c.features.is_empty()));
+        back.attach_features(b.features()).unwrap();
         let (x, y): (Vec<_>, Vec<_>) = (back.iter().collect(), b.iter().collect());
         assert_eq!(x, y);
     }

@@ -53,6 +53,47 @@ pub struct Saved {
     pub backbone: BackboneState,
     /// Preference learning (learnt rewards only).
     pub feedback: Option<FeedbackState>,
+    /// The comfort features of the annotation buffer's trajectories, oldest first (last,
+    /// and apart from the buffer, so that a checkpoint of an older build, which ends
+    /// before them, still decodes: [`decode_saved`]).
+    pub buffer_features: Vec<Vec<f32>>,
+}
+
+/// A checkpoint's state as the builds before the comfort features wrote it.
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize))]
+struct SavedBeforeFeatures {
+    config: String,
+    progress: Progress,
+    pending: Vec<(CurveRow, EvalRequest)>,
+    backbone: BackboneState,
+    feedback: Option<FeedbackState>,
+}
+
+/// Decode a checkpoint's `state.bin`: this build's layout, or the one before the comfort
+/// features (its trajectories then have none); the features go back to their candidates.
+pub fn decode_saved(bytes: &[u8]) -> Result<Saved> {
+    let config = bincode::config::standard();
+    let mut saved = match bincode::serde::decode_from_slice::<Saved, _>(bytes, config) {
+        Ok((s, _)) => s,
+        Err(e) => {
+            let (old, _): (SavedBeforeFeatures, usize) =
+                bincode::serde::decode_from_slice(bytes, config).map_err(|_| e)?;
+            Saved {
+                config: old.config,
+                progress: old.progress,
+                pending: old.pending,
+                backbone: old.backbone,
+                feedback: old.feedback,
+                buffer_features: Vec::new(),
+            }
+        }
+    };
+    let features = std::mem::take(&mut saved.buffer_features);
+    if let Some(f) = &mut saved.feedback {
+        f.buffer.attach_features(features)?;
+    }
+    Ok(saved)
 }
 
 /// The start and end of a replay segment's range, from its name.
@@ -222,6 +263,7 @@ fn saved(cfg: &LearnerConfig, of: &Of<'_>, progress: &Progress) -> Result<Vec<u8
                 })
             })
             .transpose()?,
+        buffer_features: of.feedback.map(|f| f.buffer_features()).unwrap_or_default(),
     };
     Ok(bincode::serde::encode_to_vec(
         &saved,
@@ -272,9 +314,7 @@ pub fn open_folder(
         match folder.latest_checkpoint()? {
             Some(c) => {
                 let bytes = folder.read(&c, "state.bin")?;
-                let (saved, _): (Saved, usize) =
-                    bincode::serde::decode_from_slice(&bytes, bincode::config::standard())
-                        .with_context(|| {
+                let saved = decode_saved(&bytes).with_context(|| {
                             format!(
                                 "decoding {}/state.bin (written by another build of pbrl? resume it with that build, or start over with --fresh)",
                                 c.dir.display()
@@ -359,4 +399,90 @@ pub fn open_folder(
         std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
     writeln!(f, "{}", CurveRow::header())?;
     Ok((f, None, Vec::new()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pref::query::{AnnotationBuffer, Candidate, TrajKey};
+    use crate::pref::reward_model::{RewardModel, RewardModelConfig};
+    use crate::rl::sac::{Sac, SacConfig};
+    use crate::state::RngState;
+
+    fn candidate(seq: u64) -> Candidate {
+        Candidate {
+            key: TrajKey {
+                actor: 0,
+                incarnation: 1,
+                seq,
+            },
+            seed: seq,
+            policy_version: 1,
+            obs_dim: 2,
+            act_dim: 1,
+            obs: vec![0.5; 6],
+            actions: vec![0.1; 3],
+            truth: vec![-1.0; 3],
+            features: vec![seq as f32; 3 * pbrl_common::trajectory::FEATURES],
+        }
+    }
+
+    /// A checkpoint keeps the annotation buffer's comfort features apart from it, and one
+    /// written before them (its state ends at the feedback loop's) still decodes, its
+    /// trajectories without features.
+    #[test]
+    fn checkpoints_keep_the_features_and_older_ones_still_decode() {
+        let mut buffer = AnnotationBuffer::new(4);
+        buffer.push(candidate(3));
+        buffer.push(candidate(4));
+        let rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
+        let feedback = FeedbackState {
+            counters: Default::default(),
+            rng: RngState::of(&rng),
+            buffer: buffer.clone(),
+            model: RewardModel::new(RewardModelConfig::default(), 2, 1)
+                .unwrap()
+                .state()
+                .unwrap(),
+            entropy: None,
+        };
+        let backbone = || {
+            let sac = Sac::new(SacConfig::default(), 2, 1).unwrap();
+            BackboneState::Sac(sac.state().unwrap())
+        };
+        let config = bincode::config::standard();
+        let now = Saved {
+            config: "{}".into(),
+            progress: Progress::default(),
+            pending: Vec::new(),
+            backbone: backbone(),
+            feedback: Some(feedback.clone()),
+            buffer_features: buffer.features(),
+        };
+        let back = decode_saved(&bincode::serde::encode_to_vec(&now, config).unwrap()).unwrap();
+        let b = &back.feedback.unwrap().buffer;
+        assert_eq!(b.get(0).features, candidate(3).features);
+        assert_eq!(b.get(1).features, candidate(4).features);
+        let before = SavedBeforeFeatures {
+            config: "{}".into(),
+            progress: Progress::default(),
+            pending: Vec::new(),
+            backbone: backbone(),
+            feedback: Some(feedback),
+        };
+        let old = decode_saved(&bincode::serde::encode_to_vec(&before, config).unwrap()).unwrap();
+        let b = &old.feedback.unwrap().buffer;
+        assert_eq!(b.len(), 2);
+        assert!(b.iter().all(|c| c.features.is_empty()));
+        assert_eq!(b.get(1).truth, candidate(4).truth);
+        // Features for another number of trajectories than the buffer holds: refused.
+        let wrong = Saved {
+            buffer_features: vec![Vec::new()],
+            ..now
+        };
+        let e = decode_saved(&bincode::serde::encode_to_vec(&wrong, config).unwrap())
+            .err()
+            .expect("refused");
+        assert!(e.to_string().contains("comfort features"), "{e}");
+    }
 }

@@ -147,8 +147,8 @@ pub struct RewardModelConfig {
     #[serde(default)]
     pub anchor: f64,
     /// Reward ensemble: read each step's designer-computed comfort features beside the
-    /// observation (food eaten, EE speed, force on the person, the spoon's force over
-    /// 10 N, food hits, eaten food's speed: the measurements behind the paper's preference
+    /// observation (food eaten, EE speed, force on the person, the spoon's force at or
+    /// over the high-force threshold, food hits, eaten food's speed: the measurements behind the paper's preference
     /// terms, unweighted, through sign(x) ln(1 + |x|); `StepRewards::features`). What a
     /// person makes of them is still learnt, and so is any taste outside them. Off: the
     /// authors' (observation and action only).
