@@ -65,6 +65,54 @@ pub struct LabelStats {
     /// Labels of D by the length of the segments they compare (steps; a whole
     /// trajectory's length for the queries of a store before segments).
     pub segment_steps: BTreeMap<u64, u64>,
+    /// Labels whose two segments differ in whether food was eaten (one side's segment
+    /// eats, the other's does not), and in how many the eating side was preferred: how
+    /// much the labels say about feeding itself (None: the store keeps no comfort
+    /// features).
+    pub food: Option<Agreement>,
+}
+
+/// [`LabelStats::food`] of the store at `path`.
+fn food_contrast(path: &Path) -> Result<Option<Agreement>> {
+    use crate::pref::labels::{LabelStore, Segment};
+    use pbrl_common::trajectory::FEATURES;
+    use pbrl_common::wire::Preference;
+    // NOTE: a store of schema 1 or 2 (read only, not upgraded) keeps no features.
+    let Ok(store) = LabelStore::open_read_only(path) else {
+        return Ok(None);
+    };
+    let mut cache: BTreeMap<u64, Segment> = BTreeMap::new();
+    let mut eaten = |id: u64, (start, len): (usize, usize)| -> Result<Option<f32>> {
+        if let std::collections::btree_map::Entry::Vacant(e) = cache.entry(id) {
+            e.insert(store.segment(id)?);
+        }
+        let s = &cache[&id];
+        if s.features.len() != s.steps * FEATURES || start + len > s.steps {
+            return Ok(None);
+        }
+        Ok(Some(
+            (start..start + len).map(|k| s.features[k * FEATURES]).sum(),
+        ))
+    };
+    let mut food: Option<Agreement> = None;
+    for row in store.labels_since(0)? {
+        let (Some(a), Some(b)) = (
+            eaten(row.first, row.first_segment)?,
+            eaten(row.second, row.second_segment)?,
+        ) else {
+            continue;
+        };
+        let f = food.get_or_insert_with(Agreement::default);
+        if (a > 0.0) != (b > 0.0) {
+            let eating = if a > 0.0 {
+                Preference::First
+            } else {
+                Preference::Second
+            };
+            f.add(row.preference == eating);
+        }
+    }
+    Ok(food)
 }
 
 /// Read the statistics of the label store at `path` (read-only: safe while the run goes).
@@ -163,6 +211,7 @@ pub fn stats(path: &Path) -> Result<LabelStats> {
         labellers,
         between,
         segment_steps,
+        food: food_contrast(path)?,
     })
 }
 
@@ -203,6 +252,14 @@ pub fn report(s: &LabelStats) -> String {
             .collect();
         out += &format!("\nlabels by segment length: {}\n", parts.join(", "));
     }
+    if let Some(f) = &s.food {
+        out += &format!(
+            "labels whose segments differ in food eaten (one side eats, the other not): {}, the eating side preferred in {}\n",
+            f.of,
+            f.share()
+                .map_or("-".into(), |x| format!("{:.0}%", 100.0 * x))
+        );
+    }
     if !s.between.is_empty() {
         out += "\nagreement between labellers (the same query):\n";
         for ((a, b), agreement) in &s.between {
@@ -234,7 +291,9 @@ mod tests {
         let path = dir.path().join("labels.sqlite");
         let mut store = LabelStore::open(&path, "run").unwrap();
         let (obs, actions) = (vec![0.0f32; 4], vec![0.0f32; 2]);
-        let traj = |seq| StoredTrajectory {
+        // Even trajectories eat in their first step, odd ones never.
+        let (eats, fasts) = ([[1.0f32; 6], [0.0; 6]].concat(), vec![0.0f32; 12]);
+        let traj = |seq: u64| StoredTrajectory {
             actor: 0,
             incarnation: 1,
             seq,
@@ -244,7 +303,7 @@ mod tests {
             act_dim: 1,
             obs: &obs,
             actions: &actions,
-            features: &[],
+            features: if seq % 2 == 0 { &eats } else { &fasts },
             segment: (0, 2),
         };
         let mut ids = Vec::new();
@@ -313,5 +372,12 @@ mod tests {
         // Four labels: three of whole 2-step trajectories, one of 1-step segments.
         assert_eq!(s.segment_steps, [(1, 1), (2, 3)].into());
         assert!(text.contains("1 of 1 steps, 3 of 2 steps"), "{text}");
+        // The first three compare a segment that eats with one that does not (the last
+        // compares steps that eat on neither side): ann preferred the eating side once.
+        assert_eq!(s.food, Some(Agreement { agree: 1, of: 3 }));
+        assert!(
+            text.contains("differ in food eaten (one side eats, the other not): 3, the eating side preferred in 33%"),
+            "{text}"
+        );
     }
 }
