@@ -97,20 +97,29 @@ fn the_ensemble_taught_by_the_oracle_ranks_held_out_pairs() {
     assert!(accuracy >= 0.9, "held-out accuracy {accuracy}");
 }
 
-/// Train on the point task with `reward`, taught by an in-process oracle; the mean
-/// preference return of the last evaluation.
-async fn preference_return(reward: RewardSource) -> (f64, f64) {
+/// Train on the point task with `reward` for 9,000 env steps (`--sync`, one actor; the
+/// learner's seed `seed`, the actor's `seed + 1`), taught by an in-process oracle, with
+/// the schedule `[first, every, per_session, budget]` and `tweak` on top; the learning
+/// curve's evaluated rows.
+async fn point_run(
+    run: &str,
+    reward: RewardSource,
+    seed: u64,
+    schedule: [u64; 4],
+    tweak: impl FnOnce(&mut service::LearnerConfig),
+) -> Vec<pbrl_learner::run::curve::CurveRow> {
     let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
     let session = ConnectArgs::router_on(&endpoint).open().await.unwrap();
-    let run = format!("decouple-{}", reward.name());
-    let mut cfg = support::point_learner(&run, Algo::Sac, 9_000);
-    support::small_pref(&mut cfg, reward, [1_200, 1_500, 30, 150], [500, 2_000]);
+    let mut cfg = support::point_learner(run, Algo::Sac, 9_000);
+    support::small_pref(&mut cfg, reward, schedule, [500, 2_000]);
     cfg.sync = true;
+    cfg.sac.seed = seed;
     cfg.log_every = 3_000;
     cfg.eval_episodes = 20;
     let p = &mut cfg.pref;
     p.lambda0 = 1.0;
     p.model.hidden = vec![64, 64];
+    tweak(&mut cfg);
     let (tx, rx) = tokio::sync::watch::channel(false);
     let stop = move || {
         let mut rx = rx.clone();
@@ -120,7 +129,7 @@ async fn preference_return(reward: RewardSource) -> (f64, f64) {
     };
     let learner = tokio::spawn(service::run(cfg, session.clone(), std::future::pending()));
     let teacher = tokio::spawn(pbrl_teacher::service::run(
-        TeacherConfig::new(&run, "oracle-0"),
+        TeacherConfig::new(run, "oracle-0"),
         ScriptedConfig {
             r_min: -100.0,
             ..ScriptedConfig::of(TeacherKind::Oracle, 0)
@@ -131,10 +140,10 @@ async fn preference_return(reward: RewardSource) -> (f64, f64) {
     let actor = tokio::spawn(runner::run(
         ActorConfig {
             id: 0,
-            run: run.clone(),
+            run: run.to_string(),
             task: Task::Point,
             world: WorldConfig::default(),
-            seed: 1,
+            seed: seed + 1,
         },
         session.clone(),
         stop(),
@@ -145,19 +154,27 @@ async fn preference_return(reward: RewardSource) -> (f64, f64) {
     actor.await.unwrap().unwrap();
     let last = summary.rows.last().unwrap();
     eprintln!(
-        "{}: {} labels; eval return {:.2}, preference return {:.2}, success {:.2}",
-        reward.name(),
+        "{run}: {} labels; eval return {:.2}, preference return {:.2}, success {:.2}; \
+         r_hat per step against r {:.3}, r_H {:.3}, per episode against r {:.3}",
         summary.labels.map_or(0, |c| c.answered),
         last.eval_return_truth,
         last.eval_return_human,
-        last.eval_success_rate
+        last.eval_success_rate,
+        last.rhat_step_corr,
+        last.rhat_step_corr_human,
+        last.rhat_return_corr,
     );
+    summary.rows
+}
+
+/// Train on the point task with `reward`, taught by an in-process oracle; the mean
+/// preference return of the last evaluation.
+async fn preference_return(reward: RewardSource) -> (f64, f64) {
+    let run = format!("decouple-{}", reward.name());
+    let rows = point_run(&run, reward, 0, [1_200, 1_500, 30, 150], |_| {}).await;
+    let last = rows.last().unwrap();
     // The learnt reward against the truth on the evaluation's episodes (their steps come
     // back with the evaluation): it tracks the episodes' returns.
-    eprintln!(
-        "r_hat against r on the evaluation: per step {:.3}, per episode {:.3}",
-        last.rhat_step_corr, last.rhat_return_corr
-    );
     assert!(last.rhat_step_corr.is_finite(), "{last:?}");
     assert!(last.rhat_return_corr > 0.0, "{last:?}");
     (last.eval_return_human, last.eval_return_truth)
@@ -255,4 +272,58 @@ fn a_taste_outside_the_comfort_features_is_still_learnt_with_them() {
     eprintln!("held-out accuracy on the spoon-from-above taste: {on:.3} with the features, {off:.3} without");
     assert!(on >= 0.65, "with the features: {on}");
     assert!(on >= off - 0.05, "{on} with the features, {off} without");
+}
+
+/// The label-efficient settings of issue 23 scaled to the point task's 30-step episodes:
+/// 10-step segments with uniform starts (feeding's 50 of 200), queries from the newest 10
+/// trajectories and hybrid replay of the newest 10 episodes (QPA), 20 temporal crops a
+/// label, the comfort features (all zero here: a taste outside them), and the budget
+/// spread front first over the first 3,000 env steps of feedback.
+fn label_efficient(cfg: &mut service::LearnerConfig) {
+    let p = &mut cfg.pref;
+    (p.segment_len, p.query_recent) = (10, 10);
+    (p.feedback_span, p.feedback_decay) = (3_000, 0.95);
+    p.model.crops = 20;
+    p.model.features = true;
+    (cfg.sac.hybrid_share, cfg.sac.hybrid_steps) = (0.5, 300);
+}
+
+/// Mean preference return of the last three evaluations of each seed's run.
+async fn small_budget(name: &str, efficient: bool) -> f64 {
+    let mut sum = 0.0;
+    let mut n = 0.0;
+    for seed in [0, 1] {
+        let rows = point_run(
+            &format!("{name}-s{seed}"),
+            RewardSource::Decoupled,
+            seed,
+            [1_200, 1_500, 10, 30],
+            |cfg| {
+                cfg.log_every = 1_500;
+                if efficient {
+                    label_efficient(cfg);
+                }
+            },
+        )
+        .await;
+        for r in &rows[rows.len() - 3..] {
+            sum += r.eval_return_human;
+            n += 1.0;
+        }
+    }
+    sum / n
+}
+
+/// At a budget of 30 labels, the label-efficient settings teach the point task's taste
+/// (arrive and keep still) better than whole-trajectory queries with the authors' sampler
+/// and schedule: a higher preference return at equal env steps and labels.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn at_a_small_budget_the_label_efficient_settings_beat_whole_trajectories() {
+    let whole = small_budget("whole", false).await;
+    let efficient = small_budget("efficient", true).await;
+    eprintln!("preference return at 30 labels: label-efficient {efficient:.2}, whole {whole:.2}");
+    assert!(
+        efficient > whole,
+        "preference return at 30 labels: label-efficient {efficient:.2}, whole {whole:.2}"
+    );
 }
