@@ -608,3 +608,51 @@ pub async fn actor(args: ActorArgs) -> Result<()> {
     let session = args.connect.open().await?;
     runner::run(cfg, session, stop_signal()).await
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::{CommandFactory, FromArgMatches};
+
+    /// `pbrl train ARGS`'s resolved learner config, as `main` resolves it.
+    fn resolved(args: &[&str]) -> LearnerConfig {
+        let line = ["pbrl", "train"].into_iter().chain(args.iter().copied());
+        let m = crate::Cli::command().try_get_matches_from(line).unwrap();
+        let crate::Command::Train(mut a) = crate::Cli::from_arg_matches(&m).unwrap().command else {
+            panic!("not a train command");
+        };
+        a.learn.explicit = explicit_flags(m.subcommand().unwrap().1);
+        a.learn
+            .learner_config(2, 200, serde_json::Value::Null)
+            .unwrap()
+    }
+
+    #[test]
+    fn the_default_is_a_persons_budget_with_the_label_efficient_settings() {
+        let c = resolved(&[]);
+        assert_eq!(c.pref.max_feedback, 200);
+        assert_eq!((c.pref.segment_len, c.pref.query_recent), (50, 10));
+        assert_eq!(
+            (c.pref.feedback_span, c.pref.feedback_decay),
+            (240_000, 0.95)
+        );
+        assert_eq!((c.pref.model.crops, c.pref.model.features), (20, true));
+        assert_eq!((c.sac.hybrid_share, c.pref.rho), (0.5, 3e-7));
+
+        let off = resolved(&["--reward-features=false", "--segment-len", "0"]);
+        assert!(!off.pref.model.features);
+        assert_eq!(off.pref.segment_len, 0);
+        assert!(resolved(&["--reward-features"]).pref.model.features);
+
+        // The authors' method and budget, but what the user gave stays.
+        let paper = resolved(&["--preset", "paper", "--segment-len", "25"]);
+        assert_eq!(paper.pref.max_feedback, 50_000);
+        assert_eq!(paper.pref.segment_len, 25);
+        assert_eq!((paper.pref.query_recent, paper.pref.feedback_span), (0, 0));
+        assert_eq!(
+            (paper.pref.model.crops, paper.pref.model.features),
+            (0, false)
+        );
+        assert_eq!(paper.sac.hybrid_share, 0.0);
+    }
+}

@@ -85,7 +85,7 @@ fn the_ensemble_taught_by_the_oracle_ranks_held_out_pairs() {
     let cfg = RewardModelConfig {
         hidden: vec![64, 64],
         max_pairs: 0,
-        ..RewardModelConfig::default()
+        ..RewardModelConfig::plain()
     };
     let mut model = RewardModel::new(cfg, POINT_OBS, POINT_ACT).unwrap();
     let stats = model.train(&labelled(&train, 300, 3)).unwrap();
@@ -251,7 +251,7 @@ fn feeding_accuracy(
     let cfg = RewardModelConfig {
         hidden: vec![64, 64],
         features,
-        ..RewardModelConfig::default()
+        ..RewardModelConfig::plain()
     };
     let obs = pbrl_actor::OBS_DIM;
     let mut model = RewardModel::new(cfg, obs, pbrl_actor::ACT_DIM).unwrap();

@@ -75,7 +75,7 @@ pub fn sac_step_relabelled_ms(
 ) -> Result<f64> {
     let cfg = RewardModelConfig {
         hidden: reward_hidden.to_vec(),
-        ..Default::default()
+        ..RewardModelConfig::plain()
     };
     let model = RewardModel::new(cfg, OBS, ACT)?;
     sac_step_with(hidden, batch, steps, reps, threads, Some(&model))
@@ -162,7 +162,7 @@ pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64>
         max_epochs: 1,
         stop_accuracy: f64::INFINITY,
         max_pairs: 0,
-        ..RewardModelConfig::default()
+        ..RewardModelConfig::plain()
     };
     let mut model = RewardModel::new(cfg, OBS, ACT)?;
     let mut rng = ChaCha8Rng::seed_from_u64(7);

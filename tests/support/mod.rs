@@ -202,14 +202,15 @@ pub fn small_pref(
     (p.unsup_steps, p.feedback_interval) = (first, every);
     (p.queries_per_session, p.max_feedback) = (per_session, budget);
     // NOTE: the tests' own small schedules: whole trajectories, fixed session sizes, no
-    // label-efficiency pieces unless a test turns them on.
+    // label-efficiency pieces unless a test turns them on (the point preset's settings).
     (
         p.segment_len,
         p.query_recent,
         p.feedback_span,
         p.pseudo_pairs,
     ) = (0, 0, 0, 0);
-    p.model.crops = 0;
+    (p.feedback_decay, p.rho) = (1.0, 1e-6);
+    (p.model.crops, p.model.features) = (0, false);
     cfg.sac.hybrid_share = 0.0;
     p.candidate_factor = 5;
     (p.annotation_capacity, p.knn_pool) = (buffer, pool);

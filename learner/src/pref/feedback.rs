@@ -975,7 +975,7 @@ mod tests {
             queries_per_session: 30,
             feedback_interval: 100,
             max_open_queries: 50,
-            ..PrefConfig::default()
+            ..PrefConfig::plain()
         };
         let mut f = Feedback::new(&cfg, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
         for seq in 0..40 {
@@ -1033,7 +1033,7 @@ mod tests {
             feedback_interval: 100,
             segment_len: 50,
             query_recent: 10,
-            ..PrefConfig::default()
+            ..PrefConfig::plain()
         };
         let mut f = Feedback::new(&cfg, "run", 2, 1, 3, Path::new(":memory:")).unwrap();
         for seq in 0..150 {
@@ -1086,7 +1086,7 @@ mod tests {
             queries_per_session: 4,
             sampler: Sampler::Uniform,
             segment_len: 50,
-            ..PrefConfig::default()
+            ..PrefConfig::plain()
         };
         let mut f = Feedback::new(&cfg, "run", 2, 1, 3, Path::new(":memory:")).unwrap();
         for seq in 0..20 {
@@ -1127,7 +1127,7 @@ mod tests {
             hidden: vec![16],
             lr: 3e-3,
             seed: 1,
-            ..Default::default()
+            ..crate::pref::reward_model::RewardModelConfig::plain()
         };
         let mut model = RewardModel::new(cfg, 1, 1).unwrap();
         let labels: Vec<Labelled> = (0..64)

@@ -285,7 +285,7 @@ mod tests {
             hidden: vec![32, 32],
             batch: 16,
             lr: 1e-3,
-            ..RewardModelConfig::default()
+            ..RewardModelConfig::plain()
         };
         let r = cross_validate(&labels, &cfg, 5, 1, Some([1, 2])).unwrap();
         println!("{}", report(&r));

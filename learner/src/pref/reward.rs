@@ -288,7 +288,7 @@ mod tests {
     #[test]
     fn the_lambda_scale_keeps_the_task_part_and_shrinks_r_hat() {
         use crate::pref::reward_model::RewardModelConfig;
-        let model = RewardModel::new(RewardModelConfig::default(), 2, 1).unwrap();
+        let model = RewardModel::new(RewardModelConfig::plain(), 2, 1).unwrap();
         let dev = &Device::Cpu;
         let obs = Tensor::new(&[[0.1f32, -0.2], [0.3, 0.4]], dev).unwrap();
         let act = Tensor::new(&[[0.5f32], [-0.5]], dev).unwrap();

@@ -91,7 +91,7 @@ pub struct SacConfig {
     #[arg(
         id = "sac_hybrid_share",
         long = "sac-hybrid-share",
-        default_value_t = 0.0
+        default_value_t = 0.5
     )]
     #[serde(default)]
     pub hybrid_share: f64,

@@ -440,7 +440,7 @@ mod tests {
             counters: Default::default(),
             rng: RngState::of(&rng),
             buffer: buffer.clone(),
-            model: RewardModel::new(RewardModelConfig::default(), 2, 1)
+            model: RewardModel::new(RewardModelConfig::plain(), 2, 1)
                 .unwrap()
                 .state()
                 .unwrap(),

@@ -231,8 +231,9 @@ impl LearnerConfig {
 pub type Setting = (&'static str, &'static str, serde_json::Value);
 
 /// The label-efficiency settings off: whole trajectories, queries from the whole
-/// annotation buffer, fixed session sizes, no crops, pseudo-labels or hybrid replay (the
-/// authors' method, and what the presets below keep whatever the defaults become).
+/// annotation buffer, fixed session sizes, no crops, pseudo-labels, hybrid replay or
+/// comfort features, and the exponential schedule's rate before issue 23 (the authors'
+/// method, and what the presets below keep although the defaults are label-efficient).
 fn label_efficiency_off() -> Vec<Setting> {
     use serde_json::json;
     vec![
@@ -244,6 +245,8 @@ fn label_efficiency_off() -> Vec<Setting> {
         ("sac_hybrid_share", "/sac/hybrid_share", json!(0.0)),
         ("reward_anchor", "/pref/model/anchor", json!(0.0)),
         ("reward_features", "/pref/model/features", json!(false)),
+        ("feedback_decay", "/pref/feedback_decay", json!(1.0)),
+        ("rho", "/pref/rho", json!(1e-6)),
     ]
 }
 

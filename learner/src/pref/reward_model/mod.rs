@@ -115,7 +115,7 @@ pub struct RewardModelConfig {
     /// drawn afresh at every training (QPA's and SURF's augmentation: a sub-snippet of
     /// each side, both the same length, independent starts; 0: off). With
     /// `--reward-max-pairs` the cost of a training stays the same.
-    #[arg(id = "reward_crops", long = "reward-crops", default_value_t = 0)]
+    #[arg(id = "reward_crops", long = "reward-crops", default_value_t = 20)]
     #[serde(default)]
     pub crops: usize,
     /// Reward ensemble: a crop's length, as shares of the shorter side, drawn uniformly
@@ -151,11 +151,16 @@ pub struct RewardModelConfig {
     /// over the high-force threshold, food hits, eaten food's speed: the measurements behind the paper's preference
     /// terms, unweighted, through sign(x) ln(1 + |x|); `StepRewards::features`). What a
     /// person makes of them is still learnt, and so is any taste outside them. Off: the
-    /// authors' (observation and action only).
+    /// authors' and the presets' (observation and action only). On by default;
+    /// `--reward-features=false` turns it off.
     #[arg(
         id = "reward_features",
         long = "reward-features",
-        default_value_t = false
+        action = clap::ArgAction::Set,
+        num_args = 0..=1,
+        require_equals = true,
+        default_value_t = true,
+        default_missing_value = "true"
     )]
     #[serde(default)]
     pub features: bool,
@@ -185,6 +190,16 @@ impl Default for RewardModelConfig {
 }
 
 impl RewardModelConfig {
+    /// The defaults with the label-efficiency pieces off: no crops, no comfort features
+    /// (the authors' reward model, what the presets train).
+    pub fn plain() -> Self {
+        Self {
+            crops: 0,
+            features: false,
+            ..Self::default()
+        }
+    }
+
     /// The authors' size: three hidden layers of 256.
     pub fn paper() -> Self {
         Self {

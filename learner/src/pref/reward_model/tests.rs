@@ -34,7 +34,7 @@ fn small(seed: u64, hidden: &[usize]) -> RewardModelConfig {
     RewardModelConfig {
         hidden: hidden.to_vec(),
         seed,
-        ..RewardModelConfig::default()
+        ..RewardModelConfig::plain()
     }
 }
 
