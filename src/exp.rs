@@ -56,6 +56,12 @@ pub struct Grid {
     /// Flags with several values: every combination is a run.
     #[serde(default)]
     pub grid: BTreeMap<String, Vec<toml::Value>>,
+    /// Named sets of flags, each a method of its own (an ablation: `[variants.no-crops]
+    /// reward-crops = 0`); a variant's flag overrides `[set]`'s, an empty one is `[set]`
+    /// alone. Every variant runs with every `[grid]` combination; the variant's name ends
+    /// the method's.
+    #[serde(default)]
+    pub variants: BTreeMap<String, BTreeMap<String, toml::Value>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -87,9 +93,21 @@ fn value_text(v: &toml::Value) -> Result<String> {
     })
 }
 
-/// The flag for `key = value`: `--key=value`; a boolean is the bare switch or nothing.
+/// Whether `pbrl train`'s flag `--key` takes a value (`--reward-features=false`) rather
+/// than being a bare switch (`--sync`).
+fn takes_value(key: &str) -> bool {
+    let cli = <crate::Cli as clap::CommandFactory>::command();
+    cli.find_subcommand("train")
+        .and_then(|train| train.get_arguments().find(|a| a.get_long() == Some(key)))
+        .is_some_and(|a| a.get_action().takes_values())
+}
+
+/// The flag for `key = value`: `--key=value`. A boolean of a switch is the bare switch or
+/// nothing; of a flag that takes a value (on by default, say), `--key=true` or
+/// `--key=false`, so that `false` always means off.
 fn flag(key: &str, v: &toml::Value) -> Result<Option<String>> {
     Ok(match v {
+        toml::Value::Boolean(b) if takes_value(key) => Some(format!("--{key}={b}")),
         toml::Value::Boolean(true) => Some(format!("--{key}")),
         toml::Value::Boolean(false) => None,
         v => Some(format!("--{key}={}", value_text(v)?)),
@@ -111,19 +129,52 @@ impl Grid {
                 bail!("{}: {field} is empty", path.display());
             }
         }
-        for key in grid.set.keys().chain(grid.grid.keys()) {
+        grid.check()
+            .with_context(|| format!("in {}", path.display()))?;
+        Ok(grid)
+    }
+
+    /// Keys the grid sets itself, and a flag both in `[grid]` and a variant.
+    fn check(&self) -> Result<()> {
+        let variant_keys = self.variants.values().flat_map(|v| v.keys());
+        for key in self.set.keys().chain(self.grid.keys()).chain(variant_keys) {
             if ["algo", "reward", "seed", "steps", "out", "run", "fresh"].contains(&key.as_str()) {
+                bail!("`{key}` is set by the grid itself, not in [set], [grid] or [variants]");
+            }
+        }
+        for (name, flags) in &self.variants {
+            if let Some(key) = flags.keys().find(|k| self.grid.contains_key(*k)) {
                 bail!(
-                    "{}: `{key}` is set by the grid itself, not in [set] or [grid]",
-                    path.display()
+                    "variant {name:?} sets `{key}`, which [grid] varies: a run would have it twice"
                 );
             }
         }
-        Ok(grid)
+        Ok(())
     }
 
     /// Every run, sorted by name.
     pub fn cells(&self) -> Result<Vec<Cell>> {
+        self.check()?;
+        // Every variant's flags over [set]'s (none: [set] alone, the method unnamed).
+        type Flags = BTreeMap<String, toml::Value>;
+        fn over<'a>(
+            set: &'a Flags,
+            flags: Option<&'a Flags>,
+        ) -> BTreeMap<&'a str, &'a toml::Value> {
+            let mut merged: BTreeMap<&str, &toml::Value> =
+                set.iter().map(|(k, v)| (k.as_str(), v)).collect();
+            merged.extend(flags.into_iter().flatten().map(|(k, v)| (k.as_str(), v)));
+            merged
+        }
+        let variants: Vec<(Option<&str>, BTreeMap<&str, &toml::Value>)> =
+            if self.variants.is_empty() {
+                vec![(None, over(&self.set, None))]
+            } else {
+                self.variants
+                    .iter()
+                    .map(|(name, flags)| (Some(name.as_str()), over(&self.set, Some(flags))))
+                    .collect()
+            };
         // Every combination of the [grid] flags.
         let mut combos: Vec<Vec<(&str, &toml::Value)>> = vec![vec![]];
         for (key, values) in &self.grid {
@@ -147,34 +198,39 @@ impl Grid {
             };
             for reward in &self.rewards {
                 for combo in &combos {
-                    let mut method = format!("{algo}-{reward}");
-                    for (k, v) in combo {
-                        method.push_str(&format!("-{k}={}", value_text(v)?));
-                    }
-                    if method.contains(['/', '\\']) || method.contains("..") {
-                        bail!(
-                            "run name {method:?} would not be one folder: algorithms, rewards and [grid] values may not hold '/', '\\' or '..' (a path can go in [set])"
-                        );
-                    }
-                    for seed in &self.seeds {
-                        let mut args = vec![
-                            format!("--algo={algo}"),
-                            format!("--reward={reward}"),
-                            format!("--seed={seed}"),
-                            format!("--steps={steps}"),
-                        ];
-                        for (k, v) in self.set.iter() {
-                            args.extend(flag(k, v)?);
-                        }
+                    for (variant, flags) in &variants {
+                        let mut method = format!("{algo}-{reward}");
                         for (k, v) in combo {
-                            args.extend(flag(k, v)?);
+                            method.push_str(&format!("-{k}={}", value_text(v)?));
                         }
-                        cells.push(Cell {
-                            name: format!("{method}-s{seed}"),
-                            method: method.clone(),
-                            steps,
-                            args,
-                        });
+                        if let Some(variant) = variant {
+                            method.push_str(&format!("-{variant}"));
+                        }
+                        if method.contains(['/', '\\']) || method.contains("..") {
+                            bail!(
+                                "run name {method:?} would not be one folder: algorithms, rewards, [grid] values and variant names may not hold '/', '\\' or '..' (a path can go in [set])"
+                            );
+                        }
+                        for seed in &self.seeds {
+                            let mut args = vec![
+                                format!("--algo={algo}"),
+                                format!("--reward={reward}"),
+                                format!("--seed={seed}"),
+                                format!("--steps={steps}"),
+                            ];
+                            for (k, v) in flags {
+                                args.extend(flag(k, v)?);
+                            }
+                            for (k, v) in combo {
+                                args.extend(flag(k, v)?);
+                            }
+                            cells.push(Cell {
+                                name: format!("{method}-s{seed}"),
+                                method: method.clone(),
+                                steps,
+                                args,
+                            });
+                        }
                     }
                 }
             }
@@ -183,7 +239,7 @@ impl Grid {
         // NOTE: two runs in one folder would overwrite each other.
         if let Some(w) = cells.windows(2).find(|w| w[0].name == w[1].name) {
             bail!(
-                "the grid has run {} twice: a value repeats in algos, rewards, seeds or [grid]",
+                "the grid has run {} twice: a value repeats in algos, rewards, seeds or [grid], or a variant is named like a [grid] value",
                 w[0].name
             );
         }
@@ -491,6 +547,54 @@ preset = ["default", "paper"]
         check_flags(&cells).unwrap();
     }
 
+    #[test]
+    fn variants_are_methods_whose_flags_override_the_set() {
+        let g: Grid = toml::from_str(
+            r#"
+name = "t"
+algos = ["sac"]
+rewards = ["decoupled"]
+seeds = [1, 2]
+steps = 100
+[set]
+segment-len = 50
+reward-features = true
+[grid]
+teacher = ["oracle", "noisy"]
+[variants.default]
+[variants.whole]
+segment-len = 0
+[variants.no-features]
+reward-features = false
+"#,
+        )
+        .unwrap();
+        let cells = g.cells().unwrap();
+        // 3 variants x 2 teachers x 2 seeds.
+        assert_eq!(cells.len(), 12);
+        let args = |name: &str| &cells.iter().find(|c| c.name == name).unwrap().args;
+        let default = args("sac-decoupled-teacher=oracle-default-s1");
+        assert!(default.contains(&"--segment-len=50".to_string()));
+        assert!(default.contains(&"--reward-features=true".to_string()));
+        let whole = args("sac-decoupled-teacher=noisy-whole-s2");
+        assert!(whole.contains(&"--segment-len=0".to_string()));
+        assert!(
+            !whole.contains(&"--segment-len=50".to_string()),
+            "{whole:?}"
+        );
+        assert!(whole.contains(&"--teacher=noisy".to_string()));
+        let off = args("sac-decoupled-teacher=oracle-no-features-s1");
+        assert!(
+            off.contains(&"--reward-features=false".to_string()),
+            "{off:?}"
+        );
+        assert!(off.contains(&"--segment-len=50".to_string()));
+        let methods: std::collections::BTreeSet<&str> =
+            cells.iter().map(|c| c.method.as_str()).collect();
+        assert_eq!(methods.len(), 6);
+        check_flags(&cells).unwrap();
+    }
+
     fn grid(extra: &str) -> Result<Vec<Cell>> {
         let g: Grid = toml::from_str(&format!(
             "name = \"t\"\nalgos = [\"sac\"]\nrewards = [\"true\"]\nsteps = 100\n{extra}"
@@ -509,6 +613,17 @@ preset = ["default", "paper"]
         assert!(sync("sac-true-sync=true-s1"));
         assert!(!sync("sac-true-sync=false-s1"));
         check_flags(&cells).unwrap();
+        // A flag that takes a value (on by default) is turned off by `false`.
+        let cells = grid("seeds = [1]\n[set]\nreward-features = false").unwrap();
+        assert!(cells[0]
+            .args
+            .contains(&"--reward-features=false".to_string()));
+        check_flags(&cells).unwrap();
+        // A variant may not set what [grid] varies.
+        let e = grid("seeds = [1]\n[grid]\nrho = [1e-6]\n[variants.a]\nrho = 3e-7")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("variant \"a\" sets `rho`"), "{e}");
         // Two runs in one folder.
         let e = grid("seeds = [1, 1]").unwrap_err().to_string();
         assert!(e.contains("sac-true-s1 twice"), "{e}");
