@@ -9,6 +9,7 @@ use pbrl_common::wire::{self, Body};
 use pbrl_common::{StepRewards, Trajectory};
 use pbrl_learner::rl::ppo::PpoConfig;
 use pbrl_learner::rl::sac::SacConfig;
+use pbrl_learner::run::config;
 use pbrl_learner::run::service::{Algo, LearnerConfig, RewardSource};
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -196,22 +197,15 @@ pub fn small_pref(
     [first, every, per_session, budget]: [u64; 4],
     [buffer, pool]: [usize; 2],
 ) {
+    // NOTE: the tests' own small schedules: whole trajectories, fixed session sizes, no
+    // label-efficiency pieces unless a test turns them on (the point preset's settings).
+    config::apply_preset(cfg, &config::label_efficiency_off(), &Default::default())
+        .expect("the label-efficiency settings fit the config");
     cfg.reward = reward;
     cfg.actors = 1;
     let p = &mut cfg.pref;
     (p.unsup_steps, p.feedback_interval) = (first, every);
     (p.queries_per_session, p.max_feedback) = (per_session, budget);
-    // NOTE: the tests' own small schedules: whole trajectories, fixed session sizes, no
-    // label-efficiency pieces unless a test turns them on (the point preset's settings).
-    (
-        p.segment_len,
-        p.query_recent,
-        p.feedback_span,
-        p.pseudo_pairs,
-    ) = (0, 0, 0, 0);
-    (p.feedback_decay, p.rho) = (1.0, 1e-6);
-    (p.model.crops, p.model.features) = (0, false);
-    cfg.sac.hybrid_share = 0.0;
     p.candidate_factor = 5;
     (p.annotation_capacity, p.knn_pool) = (buffer, pool);
 }

@@ -234,7 +234,8 @@ pub type Setting = (&'static str, &'static str, serde_json::Value);
 /// annotation buffer, fixed session sizes, no crops, pseudo-labels, hybrid replay or
 /// comfort features, and the exponential schedule's rate before issue 23 (the authors'
 /// method, and what the presets below keep although the defaults are label-efficient).
-fn label_efficiency_off() -> Vec<Setting> {
+/// `PrefConfig::plain` is the defaults with these applied (checked in the tests).
+pub fn label_efficiency_off() -> Vec<Setting> {
     use serde_json::json;
     vec![
         ("segment_len", "/pref/segment_len", json!(0)),
@@ -416,6 +417,25 @@ pub fn check_resume(stored: &serde_json::Value, new: &serde_json::Value) -> Resu
 mod tests {
     use super::*;
     use crate::pref::reward::Schedule;
+
+    #[test]
+    fn the_plain_config_is_the_defaults_with_the_label_efficiency_off() {
+        let mut cfg = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
+        apply_preset(&mut cfg, &label_efficiency_off(), &BTreeSet::new()).unwrap();
+        let plain = crate::pref::config::PrefConfig::plain();
+        assert_eq!(
+            serde_json::to_value(&cfg.pref).unwrap(),
+            serde_json::to_value(&plain).unwrap()
+        );
+        assert_eq!(cfg.sac.hybrid_share, 0.0);
+        // And the defaults are not plain: the test above would hold for a preset that
+        // changed nothing.
+        let default = LearnerConfig::new("r", Algo::Sac, RewardSource::Decoupled, 4, 2);
+        assert_ne!(
+            serde_json::to_value(&default.pref).unwrap(),
+            serde_json::to_value(&plain).unwrap()
+        );
+    }
 
     #[test]
     fn presets_change_only_what_the_user_did_not_set() {
