@@ -4,6 +4,8 @@
 
 use anyhow::Result;
 
+use pbrl_learner::pref::reward_model::RewardModelConfig;
+
 use crate::train::{explicit_flags, train_in_process, TrainArgs};
 
 #[derive(clap::Subcommand, Debug)]
@@ -221,6 +223,19 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         println!(
             "  ensemble 3 x {name}: SAC step (256x256, B=256) {plain:.2} ms, relabelled {relabelled:.2} ms (+{:.0}%); one training epoch over 1,000 labels of 200-step pairs {epoch:.2} s",
             100.0 * (relabelled / plain - 1.0)
+        );
+    }
+    // What the learner waits for after a session of queries, at the default (features, 20
+    // crops a label, at most `max_pairs` a member) and with those pieces off.
+    for (name, cfg, labels) in [
+        ("default", RewardModelConfig::default(), 200),
+        ("default", RewardModelConfig::default(), 1000),
+        ("plain", RewardModelConfig::plain(), 200),
+    ] {
+        let (secs, stats) = pbrl_learner::bench::bench_training(cfg, labels, 50)?;
+        println!(
+            "  a whole reward training, {name} (3 x 3x64), {labels} labels of 50-step pairs: {secs:.2} s ({} epochs, {} pairs a member)",
+            stats.epochs, stats.pairs
         );
     }
     Ok(())

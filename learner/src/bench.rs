@@ -164,6 +164,24 @@ pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64>
         max_pairs: 0,
         ..RewardModelConfig::plain()
     };
+    Ok(bench_training(cfg, labels, steps)?.0)
+}
+
+/// Seconds for one whole training of the ensemble `cfg` (as the learner runs it after a
+/// session of queries) over `labels` random pairs of `steps`-step feeding-sized segments
+/// (with comfort features where `cfg` reads them), and what it did. Random answers are
+/// never fitted, so the training runs to its bound (`max_epochs` or `max_pairs`): the cost
+/// of the longest training.
+pub fn bench_training(
+    cfg: RewardModelConfig,
+    labels: usize,
+    steps: usize,
+) -> Result<(f64, crate::pref::reward_model::TrainStats)> {
+    let feat = if cfg.features {
+        pbrl_common::trajectory::FEATURES
+    } else {
+        0
+    };
     let mut model = RewardModel::new(cfg, OBS, ACT)?;
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let mut segment = || {
@@ -174,7 +192,9 @@ pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64>
             actions: (0..steps * ACT)
                 .map(|_| rng.random_range(-1.0..1.0))
                 .collect(),
-            features: Vec::new(),
+            features: (0..steps * feat)
+                .map(|_| rng.random_range(0.0..1.0))
+                .collect(),
         })
     };
     let data: Vec<Labelled> = (0..labels)
@@ -185,8 +205,8 @@ pub fn bench_epoch(labels: usize, steps: usize, hidden: &[usize]) -> Result<f64>
         })
         .collect();
     let t = std::time::Instant::now();
-    model.train(&data)?;
-    Ok(t.elapsed().as_secs_f64())
+    let stats = model.train(&data)?;
+    Ok((t.elapsed().as_secs_f64(), stats))
 }
 
 /// What checkpoints cost with a full replay buffer (`pbrl bench checkpoint`).
