@@ -12,7 +12,7 @@ The teacher serves the labelling page at `/` and this API beside it:
                          409 {"error": "nothing to undo"} when there is none. The withdrawn
                          query comes back from the next /next call.
 
-A pair is {"query", "steps", "left": ATTEMPT, "right": ATTEMPT}; an attempt carries, per step
+A pair is {"query", "display", "steps", "left": ATTEMPT, "right": ATTEMPT}; an attempt carries, per step
 (steps + 1 entries), world positions in metres (z up): frames.spoon, frames.mouth, frames.head,
 frames.arm (joint origins, end effector, spoon) and frames.food (one point per particle).
 Errors are 4xx with {"error": "message"}. With --token T every call carries
@@ -264,6 +264,7 @@ def run_interactive(client: Client) -> int:
     while True:
         pair, _ = wait_for_pair(client, float("inf"), quiet=False)
         print()
+        print(f"pair {pair.get('display', '?')}")
         print(describe(pair))
         shown = time.monotonic()
         while True:
@@ -278,7 +279,7 @@ def run_interactive(client: Client) -> int:
             if key == "u":
                 try:
                     res = client.undo()
-                    print(f"undone the answer to query {res.get('query', '?')}; it comes back next")
+                    print("undone your last answer; that pair comes back next")
                     break  # the undone pair comes back from /next
                 except ApiError as e:
                     print(f"teacher: {e.message}")
@@ -292,7 +293,9 @@ def run_interactive(client: Client) -> int:
             try:
                 res = client.answer(pair["query"], choice, (time.monotonic() - shown) * 1000)
                 total = res.get("answered")
-                print(f"answered query {pair['query']}: {choice}"
+                # NOTE: the pair's display number, not the query id: a repeat shows
+                # under a new one, so a person cannot tell a consistency check by it.
+                print(f"answered pair {pair.get('display', '?')}: {choice}"
                       + (f" ({total} by {client.name} so far)" if total is not None else ""))
             except ApiError as e:
                 print(f"teacher refused the answer: {e.message} (HTTP {e.status})")

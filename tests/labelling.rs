@@ -828,7 +828,21 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
 
     let browser = Browser::open(dir.path());
     browser.label(&addr, "Tess T");
-    browser.playing(120, "a pair playing", &train.log);
+    let shown = browser.playing(120, "a pair playing", &train.log);
+    // The footer names the pair by its display number, not by the query id (a repeat
+    // shows under a new number).
+    let footer = browser.exec(
+        "return document.getElementById('qid').textContent;",
+        json!([]),
+    );
+    let number = footer
+        .as_str()
+        .and_then(|f| f.strip_prefix("pair "))
+        .unwrap_or("");
+    assert!(
+        number.len() == 4 && number.parse::<u32>().is_ok_and(|n| n >= 1000),
+        "the footer reads {footer} for query {shown}"
+    );
     // The share of the left side view's canvas that the scene covers (a person must see
     // the arm, the person and the furniture, not a dot).
     let drawn = browser

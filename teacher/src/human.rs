@@ -111,6 +111,9 @@ pub struct Shown {
     /// The query's second trajectory is shown on the left.
     pub swapped: bool,
     pub repeat: bool,
+    /// The number the page shows for this pair (1000-9999): the same on a reload, another
+    /// for a repeat, so that a person cannot tell a consistency check by its number.
+    pub display: u32,
 }
 
 /// An answer a person gave that is still on the desk (in its undo window, or past it and
@@ -393,6 +396,22 @@ impl Desk {
     }
 
     fn swapped(&self, query: u64, labeller: &str, repeat: bool) -> bool {
+        self.showing_hash(query, labeller, repeat) & 1 == 1
+    }
+
+    /// The pair's number on the page: a repeat's is never its first showing's.
+    fn display(&self, query: u64, labeller: &str, repeat: bool) -> u32 {
+        let number =
+            |repeat| 1000 + ((self.showing_hash(query, labeller, repeat) >> 1) % 9000) as u32;
+        let shown = number(repeat);
+        if repeat && shown == number(false) {
+            1000 + (shown - 1000 + 1) % 9000
+        } else {
+            shown
+        }
+    }
+
+    fn showing_hash(&self, query: u64, labeller: &str, repeat: bool) -> u64 {
         // NOTE: a hash of the query, the person and the round, mixed with the desk's seed:
         // the same pair shows the same way on a reload, and a repeat is drawn afresh.
         let mut h: u64 = self.cfg.seed ^ 0x9e37_79b9_7f4a_7c15;
@@ -408,7 +427,7 @@ impl Desk {
         h ^= h >> 33;
         h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);
         h ^= h >> 33;
-        h & 1 == 1
+        h
     }
 
     /// The next pair for `labeller` (none open: `None`), not `exclude`: an undone answer's
@@ -470,6 +489,7 @@ impl Desk {
             query: self.queries[&id].clone(),
             swapped: self.swapped(id, labeller, repeat),
             repeat,
+            display: self.display(id, labeller, repeat),
         }))
     }
 
@@ -1002,6 +1022,11 @@ pub(crate) mod tests {
         assert!(d.answered.contains(&first));
         let r = d.next("ann", None).unwrap().unwrap();
         assert!(r.repeat && r.query.id == first);
+        // A repeat shows under another number than its first showing (ann's was
+        // `s.display`), and the same one on a reload.
+        assert_ne!(r.display, s.display);
+        assert!((1000..10_000).contains(&r.display));
+        assert_eq!(d.next("ann", None).unwrap().unwrap().display, r.display);
         d.answer("ann", first, Choice::Equal, 10, [1, 1]).unwrap();
         let repeats: Vec<(String, bool)> = d
             .due(ms(60_000))

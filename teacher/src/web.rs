@@ -283,6 +283,7 @@ async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response 
     };
     Json(serde_json::json!({
         "query": id,
+        "display": shown.display,
         "steps": left.steps.max(right.steps),
         "left": left,
         "right": right,
