@@ -12,15 +12,20 @@ The teacher serves the labelling page at `/` and this API beside it:
                          409 {"error": "nothing to undo"} when there is none. The withdrawn
                          query comes back from the next /next call.
 
-A pair is {"query", "display", "steps", "left": ATTEMPT, "right": ATTEMPT}; an attempt carries, per step
+A pair is {"query", "display", "steps", "left": ATTEMPT, "right": ATTEMPT}; an attempt carries, per frame
 (steps + 1 entries), world positions in metres (z up): frames.spoon, frames.mouth, frames.head,
-frames.arm (joint origins, end effector, spoon) and frames.food (one point per particle).
+frames.arm (joint origins, end effector, spoon) and frames.food (one point per particle), and
+what a person would feel or see: readout.distance (spoon to mouth, m), readout.speed (m/s),
+readout.force (on the person, N) and readout.food ([on the spoon, eaten, spilled, touched the
+person] so far). Frames before segment_from are lead-in, shown but not judged.
 Errors are 4xx with {"error": "message"}. With --token T every call carries
 "Authorization: Bearer T".
 
-Interactive:
+Interactive (the default):
     python3 deploy/label.py --url http://127.0.0.1:8080 --name ana
-prints a summary of each pair (computed from its frames) and asks a/b/=/s/u/q.
+prints what the page's strips show for each attempt over the judged part (closest and mean
+distance to the mouth, mean and top spoon speed, peak and mean force on the person, food eaten,
+spilled and on the person) with a sparkline of the distance, and asks a/b/=/s/u/q.
 
 Non-interactive (tests):
     python3 deploy/label.py --url ... --name ana --answer alternate --count 5
@@ -33,7 +38,6 @@ from __future__ import annotations
 import argparse
 import http.client
 import json
-import math
 import re
 import sys
 import time
@@ -44,7 +48,6 @@ import urllib.request
 NAME_RE = re.compile(r"^[A-Za-z0-9 _.\-]{1,40}$")
 CHOICES = ("left", "right", "equal", "skip")
 ALTERNATE = ("left", "right", "equal")
-NEAR_MOUTH_M = 0.05
 HTTP_TIMEOUT_S = 30
 
 
@@ -145,47 +148,78 @@ class Client:
 
 # ---------- the summary of an attempt ----------
 
-def _dist(a, b) -> float:
-    return math.sqrt(sum((float(x) - float(y)) ** 2 for x, y in zip(a, b)))
+SPARKS = "▁▂▃▄▅▆▇█"
+
+
+def _mean(xs) -> float:
+    return sum(xs) / len(xs) if xs else float("nan")
 
 
 def summarise(attempt: dict) -> dict:
-    """Spoon path length, top spoon speed per step, closest spoon-mouth distance, and the
-    food particles that ended within 5 cm of the mouth, all from the attempt's frames."""
-    frames = attempt.get("frames") or {}
-    spoon = frames.get("spoon") or []
-    mouth = frames.get("mouth") or []
-    food = frames.get("food") or []
-    steps = [_dist(spoon[i], spoon[i + 1]) for i in range(len(spoon) - 1)]
-    closest = min(
-        (_dist(s, m) for s, m in zip(spoon, mouth)),
-        default=float("nan"),
-    )
-    near, n_food = 0, 0
-    if food and mouth:
-        last = food[-1] or []
-        n_food = len(last)
-        near = sum(1 for p in last if _dist(p, mouth[min(len(food), len(mouth)) - 1]) <= NEAR_MOUTH_M)
+    """What the page's strips show, over the judged part of the clip (the frames after
+    segment_from; the lead-in is not judged): distance to the mouth (closest, mean; m),
+    spoon speed (mean, top; m/s), force on the person (peak, mean; N), and food eaten,
+    spilled and on the person in that part, and left on the spoon at the end. Raises
+    ValueError when the attempt has no readout (a teacher older than this client)."""
+    r = attempt.get("readout") or {}
+    distance, speed, force, food = (r.get(k) or [] for k in ("distance", "speed", "force", "food"))
+    n = len(distance)
+    if n == 0 or any(len(x) != n for x in (speed, force, food)):
+        raise ValueError("the attempt has no readout (the teacher may be older than this client)")
+    start = min(max(int(attempt.get("segment_from") or 0), 0), n - 1)
+    # NOTE: frame k is the state after step k: the judged steps end at frames start+1...
+    j = min(start + 1, n - 1)
+    judged = slice(j, n)
     return {
-        "path": sum(steps),
-        "top_speed": max(steps, default=0.0),
-        "closest": closest,
-        "near": near,
-        "food": n_food,
-        "frames": len(spoon),
+        "closest": min(distance[judged]),
+        "mean_distance": _mean(distance[judged]),
+        "mean_speed": _mean(speed[judged]),
+        "top_speed": max(speed[judged]),
+        "peak_force": max(force[judged]),
+        "mean_force": _mean(force[judged]),
+        "eaten": food[-1][1] - food[start][1],
+        "spilled": food[-1][2] - food[start][2],
+        "hits": food[-1][3] - food[start][3],
+        "left": food[-1][0],
+        "distance": distance,
+        "start": start,
     }
 
 
+def sparkline(xs, top: float, width: int = 40) -> str:
+    """`xs` in `width` characters, each the mean of its share of the frames, on 0..top."""
+    if not xs:
+        return ""
+    out = []
+    for i in range(width):
+        a, b = i * len(xs) // width, max(i * len(xs) // width + 1, (i + 1) * len(xs) // width)
+        v = _mean(xs[a:b]) / top if top > 0 else 0.0
+        out.append(SPARKS[min(len(SPARKS) - 1, max(0, int(v * (len(SPARKS) - 1) + 0.5)))])
+    return "".join(out)
+
+
 def describe(pair: dict) -> str:
-    rows = []
+    sides = []
     for label, side in (("A", "left"), ("B", "right")):
-        s = summarise(pair.get(side) or {})
+        try:
+            sides.append((label, summarise(pair.get(side) or {})))
+        except ValueError as e:
+            return f"pair of {pair.get('steps', '?')} steps: cannot summarise attempt {label}: {e}"
+    top = max(max(s["distance"]) for _, s in sides)
+    first = sides[0][1]
+    lead = first["start"] * 40 // max(1, len(first["distance"]))
+    rows = [f"pair of {pair.get('steps', '?')} steps; numbers over the judged part"
+            + (f" (the sparkline's first {lead} marks are lead-in)" if lead else "") + ":"]
+    for label, s in sides:
         rows.append(
-            f"  {label}: spoon path {s['path']:.2f} m, top speed {s['top_speed'] * 100:.1f} cm/step, "
-            f"closest to mouth {s['closest'] * 100:.1f} cm, "
-            f"food ending near the mouth {s['near']}/{s['food']}"
+            f"  {label}: distance to the mouth closest {s['closest'] * 100:.1f} cm, "
+            f"mean {s['mean_distance'] * 100:.1f} cm  {sparkline(s['distance'], top)}\n"
+            f"     spoon speed mean {s['mean_speed'] * 100:.1f}, top {s['top_speed'] * 100:.1f} cm/s; "
+            f"force on the person peak {s['peak_force']:.2f}, mean {s['mean_force']:.2f} N\n"
+            f"     food eaten {s['eaten']}, spilled {s['spilled']}, on the person {s['hits']}; "
+            f"{s['left']} left on the spoon at the end"
         )
-    return f"pair of {pair.get('steps', '?')} steps:\n" + "\n".join(rows)
+    return "\n".join(rows)
 
 
 def status_line(st: dict) -> str:
@@ -304,7 +338,12 @@ def run_interactive(client: Client) -> int:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
-        description="Label pbrl preference pairs from a terminal (teacher API, protocol 1).")
+        description="Label pbrl preference pairs from a terminal (teacher API, protocol 1). "
+        "By default it is interactive: for each pair it prints what the labelling page's "
+        "strips show for attempts A and B (distance to the mouth, spoon speed, force on "
+        "the person, food eaten and spilled, over the part to judge) and asks which is "
+        "better (a, b, = for equal, s for can't tell, u to undo the last answer, q to quit). "
+        "With --answer it answers --count pairs by itself (for tests and demos).")
     ap.add_argument("--url", default="http://127.0.0.1:8080", help="the teacher's address")
     ap.add_argument("--name", required=True, help="labeller name: 1-40 letters, digits, space, _ . -")
     ap.add_argument("--token", default=None, help="bearer token, if the teacher asks for one")

@@ -855,11 +855,9 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
         )
         .as_f64()
         .unwrap_or(0.0);
+    // NOTE: the screenshots are a_labeller_who_reads_only_the_page_agrees_with_the_oracle's.
     let png = browser.screenshot();
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "the screenshot is a PNG");
-    let shots = Path::new(env!("CARGO_MANIFEST_DIR")).join("results/labelling");
-    std::fs::create_dir_all(&shots).unwrap();
-    std::fs::write(shots.join("page.png"), &png).unwrap();
 
     let q1 = browser.press(ARROW_RIGHT, "ArrowRight", &train.log);
     let q2 = browser.press("=", "=", &train.log);
@@ -987,6 +985,172 @@ fn python_client_answers_a_running_learner() {
             _ => assert!(a == "first" || a == "second", "{choice} stored as {a}"),
         }
     }
+}
+
+const ARROW_LEFT: &str = "\u{E012}";
+
+/// What a person reads on the page for the pair on screen: the strips' numbers of each
+/// attempt and the judged part's length, from the DOM's text (nothing the API sends but the
+/// page does not show).
+const READ_PAGE: &str = "
+    const side = (id) => {
+      const el = document.getElementById(id);
+      const v = (q, k) => Number(el.querySelector(`.strip[data-q=${q}] [data-v=${k}]`).textContent);
+      return {
+        closest: v('distance', 'closest'), distance: v('distance', 'mean'),
+        speed: v('speed', 'mean'), force: v('force', 'mean'),
+        eaten: v('food', 'eaten'), spilled: v('food', 'spilled'), hits: v('food', 'hits'),
+        seconds: Number(el.querySelector('.strips [data-v=\"judged-s\"]').textContent),
+      };
+    };
+    return { query: document.body.dataset.query, left: side('att-left'), right: side('att-right') };";
+
+/// Elements of a row that leave the window or overlap each other, and text cut off.
+const LAYOUT_PROBLEMS: &str = "
+    const out = [];
+    const W = window.innerWidth, H = window.innerHeight;
+    const groups = ['header > *:not([hidden])', '.statusrow > .chip:not([hidden])', '.controls > *',
+                    '.answers > button', 'footer > span', '#att-left .strip .sl > span',
+                    '#att-right .strip .sl > span', 'main > section'];
+    for (const sel of groups) {
+      const els = [...document.querySelectorAll(sel)].filter((e) => e.getClientRects().length);
+      const rs = els.map((e) => e.getBoundingClientRect());
+      rs.forEach((r, i) => {
+        if (r.left < -0.5 || r.right > W + 0.5 || r.bottom > H + 0.5) out.push(sel + ' #' + i + ' leaves the window');
+        if (els[i].scrollWidth > els[i].clientWidth + 1 && getComputedStyle(els[i]).overflow !== 'visible') out.push(sel + ' #' + i + ' is cut off');
+        for (let j = 0; j < i; j++) {
+          const o = rs[j];
+          const w = Math.min(r.right, o.right) - Math.max(r.left, o.left);
+          const h = Math.min(r.bottom, o.bottom) - Math.max(r.top, o.top);
+          if (w > 1 && h > 1) out.push(sel + ' #' + j + ' and #' + i + ' overlap');
+        }
+      });
+    }
+    return out;";
+
+/// The paper profile's ground truth as a person reading the page can weigh it: food eaten
+/// (20 + 0.5 per particle), spilled (-5) and on the person (-2.5), then the distance to the
+/// mouth (1 + 0.5 per metre and step), the force on the person (0.3 per newton and step)
+/// and the speed (0.25 per m/s and step), from the judged part's means and length (10 steps
+/// a second).
+fn profile_score(side: &Value) -> f64 {
+    let v = |k: &str| {
+        side[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("the page shows no number for {k}: {side}"))
+    };
+    let steps = v("seconds") * 10.0;
+    20.5 * v("eaten")
+        - 5.0 * v("spilled")
+        - 2.5 * v("hits")
+        - steps * (1.5 * v("distance") / 100.0 + 0.25 * v("speed") / 100.0 + 0.3 * v("force"))
+}
+
+#[test]
+fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
+    let _one = one_at_a_time();
+    if !browser_wanted("the page-reading labeller") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "reader",
+        &["--repeat-share=0", "--shadow=oracle"],
+    );
+    let api = Api {
+        addr: addr.clone(),
+        token: None,
+        log: train.log.clone(),
+    };
+    api.env_steps(60);
+    let browser = Browser::open(dir.path());
+    browser.label(&addr, "Reader");
+    browser.playing(120, "a pair playing", &train.log);
+
+    // As a person meets it at three window sizes: nothing leaves the window, overlaps or
+    // is cut off.
+    let shots = Path::new(env!("CARGO_MANIFEST_DIR")).join("results/labelling");
+    std::fs::create_dir_all(&shots).unwrap();
+    // NOTE: the window's size is the page's plus the browser's frame.
+    let frame = browser.exec(
+        "return [window.outerWidth - window.innerWidth, window.outerHeight - window.innerHeight];",
+        json!([]),
+    );
+    let (fw, fh) = (frame[0].as_u64().unwrap(), frame[1].as_u64().unwrap());
+    for (w, name) in [
+        (1400, "page.png"),
+        (900, "page-900.png"),
+        (600, "page-600.png"),
+    ] {
+        browser.cmd(
+            "POST",
+            "/window/rect",
+            Some(json!({"width": w + fw, "height": 900 + fh})),
+        );
+        let problems = wait_for(
+            10,
+            || format!("the page laid out at {w}x900"),
+            || {
+                let inner =
+                    browser.exec("return [window.innerWidth, window.innerHeight];", json!([]));
+                (inner == json!([w, 900])).then(|| browser.exec(LAYOUT_PROBLEMS, json!([])))
+            },
+        );
+        std::fs::write(shots.join(name), browser.screenshot()).unwrap();
+        assert_eq!(problems, json!([]), "at {w}x900 (results/labelling/{name})");
+    }
+
+    const PAIRS: usize = 24;
+    for i in 0..PAIRS {
+        browser.playing(120, &format!("pair {} playing", i + 1), &train.log);
+        let seen = browser.exec(READ_PAGE, json!([]));
+        let (a, b) = (profile_score(&seen["left"]), profile_score(&seen["right"]));
+        let (key, name) = if a >= b {
+            (ARROW_LEFT, "ArrowLeft")
+        } else {
+            (ARROW_RIGHT, "ArrowRight")
+        };
+        let q = browser.press(key, name, &train.log);
+        assert_eq!(json!(q.to_string()), seen["query"], "read {seen}");
+    }
+    let rows = wait_for_answers(&out.join("labels.sqlite"), PAIRS, 60, 1, &train.log);
+    let judged: Vec<&Value> = rows
+        .iter()
+        .filter(|r| r["shadow"] == "first" || r["shadow"] == "second")
+        .collect();
+    let agree = judged.iter().filter(|r| r["answer"] == r["shadow"]).count();
+    println!(
+        "page reader: agrees with the oracle on {agree} of {} pairs where it has a preference",
+        judged.len()
+    );
+    assert!(
+        judged.len() >= PAIRS / 2,
+        "the oracle preferred too few: {rows:?}"
+    );
+    assert!(
+        agree as f64 >= 0.85 * judged.len() as f64,
+        "the page reader agrees with the oracle on {agree} of {}: {rows:?}",
+        judged.len()
+    );
+}
+
+/// The terminal client's summary of an attempt is over the judged part of the readout (its
+/// Python unit tests: food eaten counted from the readout, the lead-in left out).
+#[test]
+fn python_client_summarises_what_the_strips_show() {
+    let out = Command::new("python3")
+        .args(["-m", "unittest", "deploy/test_label.py"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("python3 runs");
+    assert!(
+        out.status.success(),
+        "python3 -m unittest deploy/test_label.py: {}\n{}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 #[test]

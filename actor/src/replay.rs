@@ -1,7 +1,8 @@
 //! Watching an episode again: the world is deterministic, so an episode's seed and actions
 //! (what a query carries) and the world config replay it exactly. A labelling page draws
 //! the replay as [`Scene`]: the side and front views' static outlines and, per step, the
-//! arm, spoon, head, mouth and food.
+//! arm, spoon, head, mouth and food, and [`Readout`]: what a person would feel or see at
+//! each step (distance to the mouth, speed, force on the person, the food's state).
 
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
@@ -12,12 +13,22 @@ use crate::kinematics::Arm;
 use crate::render::{outline, pose, VIEWS};
 use crate::rollout::run_episode_with;
 use crate::scene::{self, Owner};
-use crate::world::{FeedingWorld, ACT_DIM};
+use crate::world::{FeedingWorld, FoodCounts, ACT_DIM};
 use crate::WorldConfig;
 
 /// Run the episode of `seed` again with `actions` (`steps` rows of the action size, as the
 /// policy gave them).
 pub fn resimulate(world: &WorldConfig, seed: u64, actions: &[f32]) -> Result<Trajectory> {
+    Ok(watch(world, seed, actions)?.0)
+}
+
+/// [`resimulate`], and the food's counts so far at every frame (`steps + 1` rows; the
+/// first is the state after reset), which the trajectory keeps only as a final outcome.
+pub fn watch(
+    world: &WorldConfig,
+    seed: u64,
+    actions: &[f32],
+) -> Result<(Trajectory, Vec<FoodCounts>)> {
     if actions.is_empty() || !actions.len().is_multiple_of(ACT_DIM) {
         bail!(
             "actions: {} numbers are not a positive number of rows of {ACT_DIM}",
@@ -27,7 +38,10 @@ pub fn resimulate(world: &WorldConfig, seed: u64, actions: &[f32]) -> Result<Tra
     let steps = actions.len() / ACT_DIM;
     let mut w = FeedingWorld::new(world.clone()).context("building the world to replay")?;
     let mut t = 0;
-    let traj = run_episode_with(&mut w, seed, |_, _| {
+    let mut food = Vec::with_capacity(steps + 1);
+    let traj = run_episode_with(&mut w, seed, |w, _| {
+        // NOTE: called before each step, so this is the count after the step before.
+        food.push(w.food_counts()?);
         let mut a = [0.0; ACT_DIM];
         // NOTE: the episode cannot outlast its actions: it ends where the original did.
         let row = t.min(steps - 1);
@@ -42,7 +56,71 @@ pub fn resimulate(world: &WorldConfig, seed: u64, actions: &[f32]) -> Result<Tra
             traj.steps()
         );
     }
-    Ok(traj)
+    food.push(w.food_counts().context("the food's counts at the end")?);
+    Ok((traj, food))
+}
+
+/// What a person would feel or see at each frame of an episode (`steps + 1` rows; frame 0
+/// is the state after reset, frame k the state after step k), computed by the replay:
+/// what a labelling page draws as time strips beside an attempt. Never the ground truth or
+/// the preference terms' weighted sum: the measurements a person perceives.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Readout {
+    /// Distance from the spoon to the mouth (m).
+    pub distance: Vec<f32>,
+    /// The end effector's speed over the step that led to the frame (m/s; 0 at frame 0).
+    pub speed: Vec<f32>,
+    /// Normal force of arm and spoon on the person over that step, the largest over its
+    /// substeps (N; 0 at frame 0).
+    pub force: Vec<f32>,
+    /// The food so far: [on the spoon, eaten, spilled, ever touched the person] (a
+    /// particle that fell on the person is both spilled and touched it).
+    pub food: Vec<[u32; 4]>,
+}
+
+/// The readout of `t` (a feeding trajectory with replay data) from its rewards' terms and
+/// the food's counts per frame ([`watch`]).
+pub fn readout(t: &Trajectory, food: &[FoodCounts]) -> Result<Readout> {
+    let Some(rp) = &t.replay else {
+        bail!("trajectory of seed {} has no replay data", t.seed);
+    };
+    let frames = t.steps() + 1;
+    if food.len() != frames || rp.spoon.is_empty() || rp.mouth.is_empty() {
+        bail!(
+            "the replay of seed {} has {} food counts and {} poses for {frames} frames",
+            t.seed,
+            food.len(),
+            rp.spoon.len()
+        );
+    }
+    let (s, m) = (&rp.spoon[0], &rp.mouth[0]);
+    let d0 = ((s[0] - m[0]).powi(2) + (s[1] - m[1]).powi(2) + (s[2] - m[2]).powi(2)).sqrt();
+    let per_step = |f: fn(&pbrl_common::StepRewards) -> f32| {
+        std::iter::once(0.0)
+            .chain(t.rewards.iter().map(f))
+            .collect::<Vec<f32>>()
+    };
+    let mut distance = per_step(|r| -r.task);
+    distance[0] = d0;
+    let n = rp.n_food;
+    Ok(Readout {
+        distance,
+        // NOTE: C_v = -(EE speed) and C_f = -(force on the person), unweighted.
+        speed: per_step(|r| r.terms[2].abs()),
+        force: per_step(|r| r.terms[3].abs()),
+        food: food
+            .iter()
+            .map(|c| {
+                let gone = c.eaten_total + c.spilled_total;
+                [
+                    n.saturating_sub(gone),
+                    c.eaten_total,
+                    c.spilled_total,
+                    c.hits_total,
+                ]
+            })
+            .collect(),
+    })
 }
 
 /// One of the scene's views: its title and which world axes go right and up.
@@ -84,6 +162,8 @@ pub struct Scene {
     pub shapes: std::collections::BTreeMap<&'static str, Vec<Outline>>,
     pub head_radius: f32,
     pub frames: Frames,
+    /// Per frame, what a person would feel or see (empty until [`Scene::readout`] is set).
+    pub readout: Readout,
 }
 
 impl Scene {
@@ -104,6 +184,11 @@ impl Scene {
         keep(&mut f.head, from, to);
         keep(&mut f.mouth, from, to);
         keep(&mut f.food, from, to);
+        let r = &mut self.readout;
+        keep(&mut r.distance, from, to);
+        keep(&mut r.speed, from, to);
+        keep(&mut r.force, from, to);
+        keep(&mut r.food, from, to);
         self.steps = to - from;
         self.segment_from = start.min(to) - from;
     }
@@ -179,6 +264,7 @@ pub fn scene(t: &Trajectory, world: &WorldConfig) -> Result<Scene> {
         shapes,
         head_radius: person.head_radius as f32,
         frames,
+        readout: Readout::default(),
     })
 }
 
@@ -228,5 +314,65 @@ mod tests {
         // Another seed's actions do not pass for this episode's.
         let other = resimulate(&cfg, 12, &original.actions).unwrap();
         assert_ne!(other.rewards, original.rewards);
+    }
+
+    #[test]
+    fn the_readout_is_what_the_episode_did_frame_by_frame() {
+        let cfg = WorldConfig::default();
+        let mut world = FeedingWorld::new(cfg.clone()).unwrap();
+        let mut c = Controller::new(crate::controller::ControllerKind::Scripted);
+        let original = run_episode(&mut world, &mut c, 5).unwrap();
+        let (t, food) = watch(&cfg, 5, &original.actions).unwrap();
+        let r = readout(&t, &food).unwrap();
+        let frames = t.steps() + 1;
+        for (name, len) in [
+            ("distance", r.distance.len()),
+            ("speed", r.speed.len()),
+            ("force", r.force.len()),
+            ("food", r.food.len()),
+        ] {
+            assert_eq!(len, frames, "{name}");
+        }
+        // The distance is the spoon's to the mouth at every frame, the reset's included.
+        let rp = t.replay.as_ref().unwrap();
+        for k in 0..frames {
+            let (s, m) = (rp.spoon[k], rp.mouth[k]);
+            let d = ((s[0] - m[0]).powi(2) + (s[1] - m[1]).powi(2) + (s[2] - m[2]).powi(2)).sqrt();
+            assert!(
+                (r.distance[k] - d).abs() < 1e-4,
+                "frame {k}: {} against {d}",
+                r.distance[k]
+            );
+        }
+        assert_eq!((r.speed[0], r.force[0]), (0.0, 0.0));
+        assert!(r.speed.iter().all(|v| v.is_finite() && *v >= 0.0));
+        assert!(r.speed.iter().any(|v| *v > 0.0), "the arm never moved");
+        // The food starts on the spoon; the counts only grow and end at the outcome's.
+        let n = cfg.food_count;
+        assert_eq!(r.food[0], [n, 0, 0, 0]);
+        for w in r.food.windows(2) {
+            assert!((1..4).all(|i| w[1][i] >= w[0][i]), "{w:?}");
+            assert_eq!(w[1][0] + w[1][1] + w[1][2], n, "{w:?}");
+        }
+        let o = &t.outcome;
+        assert_eq!(r.food[frames - 1][1..], [o.eaten, o.spilled, o.hits]);
+        assert!(
+            o.eaten > 0,
+            "the scripted controller fed nothing: the test shows nothing"
+        );
+        // Each step's eaten food is the step's C_e.
+        for (k, step) in t.rewards.iter().enumerate() {
+            assert_eq!(
+                (r.food[k + 1][1] - r.food[k][1]) as f32,
+                step.terms[1],
+                "step {k}"
+            );
+        }
+        // A cut scene keeps the readout's frames with the others'.
+        let mut s = scene(&t, &cfg).unwrap();
+        s.readout = r.clone();
+        s.cut(100, 50, 10);
+        assert_eq!(s.readout.distance[..], r.distance[90..=150]);
+        assert_eq!(s.readout.food[..], r.food[90..=150]);
     }
 }

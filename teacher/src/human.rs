@@ -756,6 +756,17 @@ impl Desk {
         (&self.run, &self.teacher_id)
     }
 
+    /// A person whose page asks for the status is present, answering or not (the page
+    /// polls it every 2 s while it is open). A name that is not usable changes nothing.
+    pub fn seen(&mut self, labeller: &str) {
+        if check_name(labeller).is_ok() {
+            self.people
+                .entry(labeller.to_string())
+                .or_default()
+                .last_seen_ms = now_ms();
+        }
+    }
+
     /// People seen in the last 30 seconds (their liveliness tokens).
     pub fn present(&self) -> Vec<String> {
         let now = now_ms();
@@ -873,6 +884,17 @@ pub(crate) mod tests {
             (Preference::Equal, _) => Choice::Equal,
             (Preference::Skip, _) => Choice::Skip,
         }
+    }
+
+    #[test]
+    fn a_person_whose_page_is_open_is_present_answering_or_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut d = desk(&dir.path().join("h.sqlite"), |_| {});
+        assert!(d.present().is_empty());
+        // Only the status poll of an idle page: no pair asked, no answer given.
+        d.seen("ada");
+        d.seen("not/a name");
+        assert_eq!(d.present(), vec!["ada".to_string()]);
     }
 
     #[test]

@@ -27,7 +27,7 @@ use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use pbrl_actor::replay::{resimulate, scene, Scene};
+use pbrl_actor::replay::{readout, scene, watch, Scene};
 use pbrl_actor::WorldConfig;
 use pbrl_common::wire::Shown as ShownTrajectory;
 use serde::Deserialize;
@@ -181,7 +181,11 @@ struct Who {
 }
 
 async fn status(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response {
-    Json(status_json(&lock(&web.desk), who.labeller.as_deref())).into_response()
+    let mut desk = lock(&web.desk);
+    if let Some(l) = who.labeller.as_deref() {
+        desk.seen(l);
+    }
+    Json(status_json(&desk, who.labeller.as_deref())).into_response()
 }
 
 /// What a page shows: this person's answers since the desk started, the open queries,
@@ -207,9 +211,10 @@ fn status_json(desk: &Desk, labeller: Option<&str>) -> serde_json::Value {
 }
 
 /// Replay a query's side and check that the replay is the episode the learner sent (every
-/// step's truth, the segment's among them); keep the segment and its lead-in.
+/// step's truth, the segment's among them); keep the segment and its lead-in, with what a
+/// person would feel or see at each frame.
 fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
-    let t = resimulate(world, s.seed, &s.actions)?;
+    let (t, food) = watch(world, s.seed, &s.actions)?;
     let differs = t
         .rewards
         .iter()
@@ -223,6 +228,7 @@ fn draw(world: &WorldConfig, s: &ShownTrajectory) -> Result<Scene> {
         );
     }
     let mut drawn = scene(&t, world)?;
+    drawn.readout = readout(&t, &food)?;
     let seg = s.segment();
     if seg.len() < s.steps() {
         drawn.cut(seg.start, seg.len(), LEAD_IN_STEPS);
@@ -404,6 +410,13 @@ mod tests {
         .unwrap();
         assert_eq!(whole.segment_from, 0);
         assert_eq!(scene.frames.spoon[..], whole.frames.spoon[110..=170]);
+        // What the strips show is cut with the frames.
+        assert_eq!(whole.readout.distance.len(), 201);
+        assert_eq!(
+            scene.readout.distance[..],
+            whole.readout.distance[110..=170]
+        );
+        assert_eq!(scene.readout.food[..], whole.readout.food[110..=170]);
         // A segment at the start has what lead-in there is.
         let early = draw(
             &world,
