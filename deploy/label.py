@@ -69,6 +69,7 @@ class Client:
         self.base = url.rstrip("/")
         self.name = name
         self.token = token
+        self.last_ms = 0.0  # the last successful call's round trip
 
     def call(self, method: str, path: str, body: dict | None = None, query: dict | None = None):
         """Returns (status, decoded JSON or None). Raises ApiError on >= 400, Unreachable."""
@@ -83,10 +84,12 @@ class Client:
         if self.token:
             headers["Authorization"] = "Bearer " + self.token
         req = urllib.request.Request(url, data=data, headers=headers, method=method)
+        started = time.monotonic()
         try:
             with urllib.request.urlopen(req, timeout=HTTP_TIMEOUT_S) as res:
                 status = res.status
                 raw = res.read()
+            self.last_ms = (time.monotonic() - started) * 1000
         except urllib.error.HTTPError as e:
             raw = e.read() if e.fp else b""
             message = None
@@ -263,9 +266,16 @@ def wait_for_pair(client: Client, timeout: float, quiet: bool):
         time.sleep(1)
 
 
-def run_auto(client: Client, mode: str, count: int, timeout: float, pace: float = 0.0) -> int:
+def run_auto(client: Client, mode: str, count: int, timeout: float, pace: float = 0.0,
+             timing: bool = False) -> int:
     for i in range(count):
+        started = time.monotonic()
         pair, why = wait_for_pair(client, timeout, quiet=True)
+        if timing and pair is not None:
+            # The last /next call's round trip: what serving a pair costs (the wait for
+            # the learner's queries before it is not counted).
+            print(f"served query {pair['query']} in {client.last_ms:.0f} ms "
+                  f"({(time.monotonic() - started) * 1000:.0f} ms with waiting)", flush=True)
         if pair is None:
             print(f"error: no pair to label came within {timeout:g} s ({why}); "
                   f"{i} of {count} answered", file=sys.stderr)
@@ -352,6 +362,8 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=1, help="with --answer: how many pairs to answer")
     ap.add_argument("--pace", type=float, default=0.0,
                     help="with --answer: seconds to wait on each pair before answering")
+    ap.add_argument("--timing", action="store_true",
+                    help="with --answer: print how long each pair took to serve")
     ap.add_argument("--timeout", type=float, default=120.0,
                     help="with --answer: give up when no pair comes for this many seconds")
     args = ap.parse_args(argv)
@@ -364,7 +376,8 @@ def main(argv=None) -> int:
         if args.answer:
             if args.pace < 0:
                 ap.error("--pace must be >= 0")
-            return run_auto(client, args.answer, args.count, args.timeout, args.pace)
+            return run_auto(client, args.answer, args.count, args.timeout, args.pace,
+                            args.timing)
         return run_interactive(client)
     except ApiError as e:
         print(f"error: teacher said: {e.message} (HTTP {e.status})", file=sys.stderr)

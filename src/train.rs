@@ -478,11 +478,16 @@ impl TrainArgs {
     /// The world the actors simulate and the learner's resolved config for it.
     fn configs(&self) -> Result<(pbrl_actor::WorldConfig, LearnerConfig)> {
         let world = self.world.config()?;
-        let cfg = self.learn.learner_config(
+        let mut cfg = self.learn.learner_config(
             self.actors,
             episode_steps(self.learn.task, &world),
             world_json(self.learn.task, &world)?,
         )?;
+        // NOTE: a person at the page is asked just in time; scripted teachers as before.
+        if self.teacher.kind == Who::Human && !self.external_teacher {
+            config::apply_preset(&mut cfg, &config::person_preset(), &self.learn.explicit)?;
+            cfg.validate()?;
+        }
         Ok((world, cfg))
     }
 }

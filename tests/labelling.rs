@@ -9,6 +9,7 @@
 //! package has no SQLite dev-dependency, and `LabelStore` does not show who answered. The
 //! tests run one at a time: two feeding runs beside a browser on 2 cores starve one another.
 
+use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
@@ -1516,4 +1517,120 @@ fn bad_http_input_is_refused_and_changes_nothing() {
     assert_eq!(rows[0]["labeller"], "val");
     let a = rows[0]["answer"].as_str().unwrap();
     assert!(a == "first" || a == "second", "left stored as {a}");
+}
+
+/// With a person at the page answering every 3 s, the learner asks pairs just in time: a
+/// few open for the person, each from episodes at most `--query-stale-steps` old when the
+/// person first sees it (the teacher's `shown` against the store's `env_steps`), stale
+/// ones withdrawn for fresh ones, and no trajectory in two open queries at once
+/// (reconstructed from the store's asked, answered, expired and withdrawn times).
+#[test]
+fn a_person_every_3_s_is_asked_fresh_pairs_just_in_time() {
+    let _one = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let stale = 3_000;
+    let stale_flag = format!("--query-stale-steps={stale}");
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "jit",
+        &["--undo-s=1", "--repeat-share=0", &stale_flag],
+    );
+    let api = Api {
+        addr,
+        token: None,
+        log: train.log.clone(),
+    };
+    let answers = 12;
+    let mut given = Vec::new();
+    for _ in 0..answers {
+        let pair = api.pair("pat", None, 120);
+        // NOTE: a person's pace (the learner trains on meanwhile), not a timing assertion.
+        std::thread::sleep(Duration::from_secs(3));
+        let q = pair["query"].as_u64().unwrap();
+        let r = api.answer("pat", q, "left");
+        assert_eq!(r.status, 200, "answer {q}: {}{}", r.text(), train.tail());
+        given.push(q);
+    }
+    let db = out.join("labels.sqlite");
+    let rows = wait_for_answers(&db, answers, 60, 0, &train.log);
+    let mut stored = ids(&rows);
+    stored.sort();
+    given.sort();
+    assert_eq!(stored, given, "the answers given are the ones stored");
+
+    // Every answered pair was at most `stale` env steps old when the person first saw it.
+    let asked = sql(&db, "SELECT id, env_steps FROM queries").unwrap();
+    let asked_at = |id: u64| {
+        asked
+            .iter()
+            .find(|r| r["id"].as_u64() == Some(id))
+            .and_then(|r| r["env_steps"].as_u64())
+            .unwrap_or_else(|| panic!("query {id} is not in the store"))
+    };
+    let shown = sql(
+        &out.join("teacher.sqlite"),
+        "SELECT query, env_steps FROM shown WHERE labeller = 'pat'",
+    )
+    .unwrap();
+    let mut ages = Vec::new();
+    for q in &given {
+        let seen = shown
+            .iter()
+            .find(|r| r["query"].as_u64() == Some(*q))
+            .unwrap_or_else(|| panic!("query {q} answered but never shown: {shown:?}"));
+        let age = seen["env_steps"]
+            .as_u64()
+            .unwrap()
+            .saturating_sub(asked_at(*q));
+        ages.push(age);
+    }
+    assert!(
+        ages.iter().all(|a| *a <= stale),
+        "env steps from asking to showing: {ages:?} (stale at {stale})"
+    );
+    // The learner trained on meanwhile, so queries grew stale and were withdrawn; each is
+    // in the store, none counted against the budget.
+    let withdrawn = sql(
+        &db,
+        "SELECT id FROM queries WHERE withdrawn_at_steps IS NOT NULL",
+    )
+    .unwrap();
+    assert!(
+        !withdrawn.is_empty(),
+        "nothing withdrawn in {answers} answers 3 s apart: the test shows nothing{}",
+        train.tail()
+    );
+
+    // No trajectory was in two open queries at once: each query is open from its asking
+    // to its answer, expiry or withdrawal.
+    let spans = sql(
+        &db,
+        "SELECT first, second, asked_at_ms AS a, \
+         coalesce(expired_at_ms, answered_at_ms, 9223372036854775807) AS b FROM queries",
+    )
+    .unwrap();
+    let mut events: BTreeMap<u64, Vec<(u64, i32)>> = BTreeMap::new();
+    for s in &spans {
+        let (a, b) = (s["a"].as_u64().unwrap(), s["b"].as_u64().unwrap());
+        for side in ["first", "second"] {
+            let t = s[side].as_u64().unwrap();
+            // NOTE: a close sorts before an open at the same millisecond.
+            events.entry(t).or_default().extend([(a, 1), (b, -1)]);
+        }
+    }
+    for (t, mut ev) in events {
+        ev.sort();
+        let mut open = 0;
+        for (at, d) in ev {
+            open += d;
+            assert!(
+                open <= 1,
+                "trajectory {t} in {open} open queries at {at} ms: {spans:?}"
+            );
+        }
+    }
+    eprintln!(
+        "{answers} answers, {} withdrawn, ages when shown {ages:?}",
+        withdrawn.len()
+    );
 }

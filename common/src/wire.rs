@@ -7,9 +7,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
-/// Version of the wire format; bumped whenever a message changes (8: evaluation steps
-/// carry the comfort features).
-pub const WIRE_FORMAT: u16 = 8;
+/// Version of the wire format; bumped whenever a message changes (9: a query says when it
+/// is withdrawn as stale).
+pub const WIRE_FORMAT: u16 = 9;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -196,6 +196,18 @@ pub struct Query {
     /// scales it to the segment's length), fixed for the session as in the authors' code.
     /// None where the learner had no episodes (a teacher then keeps its own window).
     pub r_avg: Option<f32>,
+    /// The learner's env steps at which an unanswered query grows stale and is withdrawn
+    /// (0: never): a teacher offers it to nobody new once the learner's status reaches
+    /// them, and a person who is judging it may still answer (the answer is stored as
+    /// late). Last, so that a query an older build stored reads as its layout.
+    pub withdraw_at_steps: u64,
+}
+
+impl Query {
+    /// Withdrawn as stale at `env_steps` of the learner.
+    pub fn stale_at(&self, env_steps: u64) -> bool {
+        self.withdraw_at_steps != 0 && env_steps >= self.withdraw_at_steps
+    }
 }
 
 /// A teacher's judgement of a query.
@@ -562,49 +574,90 @@ fn decode_formats(run: &str, bytes: &[u8], formats: &[u16]) -> Result<Body, Wire
 }
 
 /// A query as a label store keeps it (the encoded message of an open query): this build's
-/// format, format 7's (its query is laid out as this build's: format 8 changed only the
-/// evaluation steps), or format 6's (before segments), read as whole-trajectory segments
-/// with no R_avg, so that a store of an older build still asks its open queries.
+/// format; format 7's or 8's (before the withdrawal step; format 8 changed only the
+/// evaluation steps), read as never withdrawn; or format 6's (before segments), read as
+/// whole-trajectory segments with no R_avg, so that a store of an older build still asks
+/// its open queries.
 pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> {
-    // NOTE: the envelope starts with its format; a format-6 body does not decode as
-    // this build's, so the format is read first.
+    // NOTE: the envelope starts with its format; an older body does not decode as this
+    // build's, so the format is read first.
     let format = bincode::serde::decode_from_slice::<u16, _>(bytes, bincode::config::standard())
         .map(|(f, _)| f)
         .ok();
-    match if format == Some(6) {
-        Err(WireError::Format {
-            found: 6,
-            expected: WIRE_FORMAT,
-        })
-    } else {
-        decode_formats(run, bytes, &[WIRE_FORMAT, 7])
-    } {
-        Ok(Body::Query(q)) => Ok(*q),
-        Ok(_) => Err(WireError::Decode("the message is not a query".into())),
-        Err(WireError::Format { found: 6, .. }) => {
-            let ((format, found_run, variant, q), _): ((u16, String, u32, v6::Query), usize) =
-                bincode::serde::decode_from_slice(bytes, bincode::config::standard())
-                    .map_err(|e| WireError::Decode(e.to_string()))?;
-            // NOTE: format 6's Body listed Query sixth (index 5), as this one does.
-            if format != 6 || variant != 5 {
-                return Err(WireError::Decode(format!(
-                    "a format-6 message of body {variant} is not a query"
-                )));
-            }
-            if found_run != run {
-                return Err(WireError::Run {
-                    found: found_run,
-                    expected: run.to_string(),
-                });
-            }
-            let body = Body::Query(Box::new(q.upgrade()));
-            // Validated as this build validates a query it receives.
-            match decode(run, &encode(run, &body))? {
+    let old = match format {
+        Some(6) => old_query::<v6::Query>(run, bytes, 6)?.upgrade(),
+        Some(f @ (7 | 8)) => old_query::<v8::Query>(run, bytes, f)?.upgrade(),
+        _ => {
+            return match decode(run, bytes)? {
                 Body::Query(q) => Ok(*q),
-                _ => unreachable!("a query encodes and decodes as a query"),
+                _ => Err(WireError::Decode("the message is not a query".into())),
             }
         }
-        Err(e) => Err(e),
+    };
+    // Validated as this build validates a query it receives.
+    match decode(run, &encode(run, &Body::Query(Box::new(old))))? {
+        Body::Query(q) => Ok(*q),
+        _ => unreachable!("a query encodes and decodes as a query"),
+    }
+}
+
+/// The query of an envelope of an older `format` for `run`, in that format's layout `Q`.
+fn old_query<Q: serde::de::DeserializeOwned>(
+    run: &str,
+    bytes: &[u8],
+    format: u16,
+) -> Result<Q, WireError> {
+    if bytes.len() > MAX_MESSAGE_BYTES {
+        return Err(WireError::TooLarge { bytes: bytes.len() });
+    }
+    let ((found, found_run, variant, q), _): ((u16, String, u32, Q), usize) =
+        bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+            .map_err(|e| WireError::Decode(e.to_string()))?;
+    // NOTE: formats 6 to 8 listed Query sixth in Body (index 5), as this one does.
+    if found != format || variant != 5 {
+        return Err(WireError::Decode(format!(
+            "a format-{found} message of body {variant} is not a query"
+        )));
+    }
+    if found_run != run {
+        return Err(WireError::Run {
+            found: found_run,
+            expected: run.to_string(),
+        });
+    }
+    Ok(q)
+}
+
+/// Formats 7's and 8's query (before the withdrawal step), to read open queries that a
+/// store of an older build holds.
+pub mod v8 {
+    use super::*;
+
+    #[derive(Clone, Debug, Serialize, Deserialize)]
+    pub struct Query {
+        pub id: u64,
+        pub session: u64,
+        pub asked_at_ms: u64,
+        pub expires_at_ms: u64,
+        pub first: super::Shown,
+        pub second: super::Shown,
+        pub r_avg: Option<f32>,
+    }
+
+    impl Query {
+        /// This build's query: never withdrawn.
+        pub fn upgrade(self) -> super::Query {
+            super::Query {
+                id: self.id,
+                session: self.session,
+                asked_at_ms: self.asked_at_ms,
+                expires_at_ms: self.expires_at_ms,
+                first: self.first,
+                second: self.second,
+                r_avg: self.r_avg,
+                withdraw_at_steps: 0,
+            }
+        }
     }
 }
 
@@ -661,6 +714,7 @@ mod v6 {
                 first: self.first.upgrade(),
                 second: self.second.upgrade(),
                 r_avg: None,
+                withdraw_at_steps: 0,
             }
         }
     }
@@ -848,6 +902,7 @@ mod tests {
                 first,
                 second: shown(2, 4),
                 r_avg: Some(-80.0),
+                withdraw_at_steps: 0,
             }))
         };
         let mut s = shown(1, 4);
@@ -920,28 +975,49 @@ mod tests {
                 first: shown(1, 4),
                 second: shown(2, 4),
                 r_avg: None,
+                withdraw_at_steps: 0,
             }
         );
         assert!(matches!(
             decode_stored_query("other", &bytes),
             Err(WireError::Run { .. })
         ));
-        // Format 7's query is this build's query in a format-7 envelope.
-        let body = Body::Query(Box::new(q.clone()));
-        let bytes = bincode::serde::encode_to_vec(
-            EnvelopeRef {
-                format: 7,
-                run: "r",
-                body: &body,
-            },
-            bincode::config::standard(),
-        )
-        .unwrap();
-        assert!(
-            decode("r", &bytes).is_err(),
-            "a receiver speaks format 8 only"
-        );
-        assert_eq!(decode_stored_query("r", &bytes).unwrap(), q);
+        // Formats 7's and 8's query is this build's without the withdrawal step: never
+        // withdrawn.
+        let old = v8::Query {
+            id: q.id,
+            session: q.session,
+            asked_at_ms: q.asked_at_ms,
+            expires_at_ms: q.expires_at_ms,
+            first: q.first.clone(),
+            second: q.second.clone(),
+            r_avg: Some(-3.5),
+        };
+        for format in [7u16, 8] {
+            let bytes = bincode::serde::encode_to_vec(
+                (format, "r", 5u32, &old),
+                bincode::config::standard(),
+            )
+            .unwrap();
+            assert!(
+                decode("r", &bytes).is_err(),
+                "a receiver speaks format {WIRE_FORMAT} only"
+            );
+            let read = decode_stored_query("r", &bytes).unwrap();
+            assert_eq!(read.r_avg, Some(-3.5), "format {format}");
+            assert_eq!(read.withdraw_at_steps, 0, "format {format}");
+            assert!(!read.stale_at(u64::MAX), "format {format}");
+            assert_eq!(
+                (read.first, read.second),
+                (q.first.clone(), q.second.clone())
+            );
+        }
+        // This build's stored query says when it is withdrawn.
+        let mut now = q.clone();
+        now.withdraw_at_steps = 5_000;
+        let bytes = encode("r", &Body::Query(Box::new(now.clone())));
+        assert_eq!(decode_stored_query("r", &bytes).unwrap(), now);
+        assert!(!now.stale_at(4_999) && now.stale_at(5_000) && now.stale_at(9_000));
         // Format 6's answer (body 6) is not a query.
         let answer =
             bincode::serde::encode_to_vec((6u16, "r", 6u32, &q6), bincode::config::standard())
@@ -959,6 +1035,7 @@ mod tests {
             first: shown(1, 4),
             second: shown(2, 4),
             r_avg: None,
+            withdraw_at_steps: 0,
         }));
         assert_eq!(decode("r", &encode("r", &q)).unwrap(), q);
         let mut bad = shown(1, 4);
@@ -975,6 +1052,7 @@ mod tests {
                     first: shown(1, 4),
                     second: bad,
                     r_avg: None,
+                    withdraw_at_steps: 0,
                 })),
             ),
         )

@@ -190,7 +190,27 @@ CREATE TABLE IF NOT EXISTS checks (
     PRIMARY KEY (query, labeller)
 );
 CREATE TABLE IF NOT EXISTS labellers (name TEXT PRIMARY KEY, answered INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS shown (
+    query INTEGER NOT NULL,
+    labeller TEXT NOT NULL,
+    env_steps INTEGER NOT NULL,
+    at_ms INTEGER NOT NULL,
+    PRIMARY KEY (query, labeller)
+);
 ";
+
+/// A query as the desk keeps it: this build's layout, or the layout before the withdrawal
+/// step (which an older build wrote), read as never withdrawn.
+fn stored_query(bytes: &[u8]) -> Result<Query> {
+    if let Ok((q, n)) = bincode::serde::decode_from_slice::<Query, _>(bytes, code()) {
+        if n == bytes.len() {
+            return Ok(q);
+        }
+    }
+    let (q, _): (pbrl_common::wire::v8::Query, usize) =
+        bincode::serde::decode_from_slice(bytes, code())?;
+    Ok(q.upgrade())
+}
 
 /// A labeller's name as the wire checks it, and not blank.
 fn check_name(labeller: &str) -> Result<(), Refused> {
@@ -243,8 +263,7 @@ impl Desk {
         let rows: Vec<(i64, Vec<u8>)> =
             all_rows(&self.db, "SELECT id, message FROM queries ORDER BY id")?;
         for (id, bytes) in rows {
-            let (q, _): (Query, usize) = bincode::serde::decode_from_slice(&bytes, code())
-                .with_context(|| format!("query {id} does not decode"))?;
+            let q = stored_query(&bytes).with_context(|| format!("query {id} does not decode"))?;
             self.queries.insert(q.id, Arc::new(q));
         }
         let rows: Vec<(Vec<u8>, i64)> =
@@ -313,7 +332,8 @@ impl Desk {
         if self.answered.contains(&q.id) || self.queries.contains_key(&q.id) {
             return Ok(());
         }
-        if q.expires_at_ms != 0 && q.expires_at_ms <= now_ms() {
+        if (q.expires_at_ms != 0 && q.expires_at_ms <= now_ms()) || q.stale_at(self.learner_steps())
+        {
             return Ok(());
         }
         let bytes = bincode::serde::encode_to_vec(&q, code())?;
@@ -373,14 +393,24 @@ impl Desk {
         Ok(())
     }
 
-    /// Open queries past their expiry leave the queue.
+    /// Open queries past their expiry leave the queue, and so do those the learner has
+    /// withdrawn as stale, unless a person holds one on their page (they may still answer
+    /// it; the learner stores that answer as late).
     pub fn expire(&mut self) -> Result<()> {
         let now = now_ms();
+        let steps = self.learner_steps();
+        let lease_ms = self.cfg.lease_s * 1000;
         let expired: Vec<u64> = self
             .queries
             .values()
             .filter(|q| {
-                !self.answered.contains(&q.id) && q.expires_at_ms != 0 && q.expires_at_ms <= now
+                let held = self
+                    .leases
+                    .get(&q.id)
+                    .is_some_and(|(_, at)| now < at + lease_ms);
+                !self.answered.contains(&q.id)
+                    && ((q.expires_at_ms != 0 && q.expires_at_ms <= now)
+                        || (q.stale_at(steps) && !held))
             })
             .map(|q| q.id)
             .collect();
@@ -460,18 +490,22 @@ impl Desk {
                 .map(|c| (c.query, true));
         }
         if chosen.is_none() {
+            // NOTE: a query withdrawn as stale is offered to nobody new; who holds it may
+            // see it again (a reload) and answer it.
+            let steps = self.learner_steps();
             chosen = self
                 .queries
-                .keys()
-                .find(|id| {
-                    !self.answered.contains(id)
-                        && Some(**id) != exclude
-                        && match self.leases.get(id) {
-                            Some((who, at)) => who == labeller || now >= at + lease_ms,
-                            None => true,
+                .values()
+                .find(|q| {
+                    !self.answered.contains(&q.id)
+                        && Some(q.id) != exclude
+                        && match self.leases.get(&q.id) {
+                            Some((who, _)) if who == labeller => true,
+                            Some((_, at)) => now >= at + lease_ms && !q.stale_at(steps),
+                            None => !q.stale_at(steps),
                         }
                 })
-                .map(|id| (*id, false));
+                .map(|q| (q.id, false));
         }
         let Some((id, repeat)) = chosen else {
             return Ok(None);
@@ -484,6 +518,15 @@ impl Desk {
                     params![id as i64, labeller, now as i64],
                 )
                 .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e}")))?;
+            // The first showing to this person, with where the learner stood (provenance:
+            // how old the pair was when the person saw it).
+            self.db
+                .execute(
+                    "INSERT OR IGNORE INTO shown (query, labeller, env_steps, at_ms)
+                     VALUES (?1, ?2, ?3, ?4)",
+                    params![id as i64, labeller, self.learner_steps() as i64, now as i64],
+                )
+                .map_err(|e| Refused::Failed(format!("noting the showing failed: {e}")))?;
         }
         Ok(Some(Shown {
             query: self.queries[&id].clone(),
@@ -736,6 +779,11 @@ impl Desk {
         self.status = Some((s, now_ms()));
     }
 
+    /// The learner's env steps at its newest status (0 before any).
+    fn learner_steps(&self) -> u64 {
+        self.status.as_ref().map_or(0, |(s, _)| s.env_steps)
+    }
+
     /// The learner's status if heard in the last 5 seconds, and whether its env steps
     /// grew at the last one (it trains).
     pub fn learner(&self) -> Option<(&LearnerStatus, bool)> {
@@ -836,6 +884,7 @@ pub(crate) mod tests {
             first: side(0, first),
             second: side(1, second),
             r_avg: None,
+            withdraw_at_steps: 0,
         }
     }
 
@@ -895,6 +944,69 @@ pub(crate) mod tests {
         d.seen("ada");
         d.seen("not/a name");
         assert_eq!(d.present(), vec!["ada".to_string()]);
+    }
+
+    #[test]
+    fn a_stale_query_is_offered_to_nobody_new_and_who_holds_it_may_answer() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("h.sqlite");
+        let mut d = desk(&path, |_| {});
+        let status = |env_steps| LearnerStatus {
+            env_steps,
+            ..LearnerStatus::default()
+        };
+        let stale_at = |id, steps| {
+            let mut q = query(id, 1.0, 0.0);
+            q.withdraw_at_steps = steps;
+            q
+        };
+        d.learner_status(status(500));
+        d.receive(stale_at(1, 1_000)).unwrap();
+        d.receive(stale_at(2, 0)).unwrap();
+        let held = d.next("ada", None).unwrap().unwrap();
+        assert_eq!(held.query.id, 1);
+        // The learner has gone past query 1's withdrawal: bob is not offered it (nor would
+        // he be once ada's lease ends), a query already stale on arrival is not queued,
+        // and ada, who holds it, sees it again and answers it.
+        d.learner_status(status(1_500));
+        d.receive(stale_at(3, 1_200)).unwrap();
+        assert_eq!(d.next("bob", None).unwrap().unwrap().query.id, 2);
+        assert!(d.next("cyd", None).unwrap().is_none());
+        assert_eq!(d.next("ada", None).unwrap().unwrap().query.id, 1);
+        d.expire().unwrap();
+        assert!(d.queries.contains_key(&1), "ada still holds it");
+        d.answer("ada", 1, Choice::Left, 800, [1, 1]).unwrap();
+        // Each first showing is kept with where the learner stood.
+        let shown: Vec<(i64, String, i64)> = all_rows(
+            &d.db,
+            "SELECT query, labeller, env_steps FROM shown ORDER BY query, labeller",
+        )
+        .unwrap();
+        assert_eq!(
+            shown,
+            [(1, "ada".to_string(), 500), (2, "bob".to_string(), 1_500)]
+        );
+        // A stale query nobody holds leaves the queue.
+        d.receive(stale_at(4, 2_000)).unwrap();
+        d.learner_status(status(2_000));
+        d.expire().unwrap();
+        assert!(!d.queries.contains_key(&4) && !d.queries.contains_key(&3));
+        // A query an older build kept (no withdrawal step) reads back, never withdrawn.
+        let old = pbrl_common::wire::v8::Query {
+            id: 9,
+            session: 1,
+            asked_at_ms: 1,
+            expires_at_ms: 0,
+            first: query(9, 1.0, 0.0).first,
+            second: query(9, 1.0, 0.0).second,
+            r_avg: None,
+        };
+        let bytes = bincode::serde::encode_to_vec(&old, code()).unwrap();
+        let read = stored_query(&bytes).unwrap();
+        assert_eq!((read.id, read.withdraw_at_steps), (9, 0));
+        let now = stale_at(10, 7);
+        let bytes = bincode::serde::encode_to_vec(&now, code()).unwrap();
+        assert_eq!(stored_query(&bytes).unwrap(), now);
     }
 
     #[test]

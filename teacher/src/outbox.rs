@@ -326,6 +326,7 @@ mod tests {
             first: side.clone(),
             second: side,
             r_avg: None,
+            withdraw_at_steps: 0,
         }
     }
 

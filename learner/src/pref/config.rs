@@ -90,6 +90,26 @@ pub struct PrefConfig {
     #[arg(long, default_value_t = 200)]
     #[serde(default = "default_max_open")]
     pub max_open_queries: u64,
+    /// With people: at most this many queries are open per person at a labelling page
+    /// (counted by their liveliness tokens; as for one while nobody is there), so that a
+    /// pair is chosen when a person is ready for one, from the newest episodes, by the
+    /// session's sampler; a session's queries that find no room are asked as room appears
+    /// (0: only `--max-open-queries`; `--teacher human`: 3).
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub open_per_labeller: u64,
+    /// An unanswered query is stale this many env steps after it was asked: withdrawn (the
+    /// label store keeps it as withdrawn and does not count it against the budget; an
+    /// answer that still comes is stored as late) and a fresh one asked in its place, and a
+    /// teacher offers it to nobody new (0: never; `--teacher human`: 20,000).
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub query_stale_steps: u64,
+    /// A trajectory is in at most this many open queries at once (0: no bound; `--teacher
+    /// human`: 1), so that a person is not shown the same attempt over and over.
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub queries_per_trajectory: u64,
     /// Steps of each side of a query: a segment of each trajectory (B-Pref: 50; 0: whole
     /// trajectories, the authors' and the presets'; a trajectory shorter than this is shown
     /// whole). One label then says which of two short stretches was better, which gives

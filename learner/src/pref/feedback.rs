@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::pref::config::{PrefConfig, SegmentStart};
 use crate::pref::labels::{LabelStore, Stored, StoredTrajectory};
-use crate::pref::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler};
+use crate::pref::query::{candidate_pairs, select, AnnotationBuffer, Candidate, Sampler, TrajKey};
 use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
 use crate::state::RngState;
 
@@ -53,6 +53,10 @@ pub struct Counters {
     pub repeated_answers: u64,
     /// Queries asked again (unanswered for `query_retry_s`).
     pub retried_queries: u64,
+    /// Queries withdrawn as stale (`query_stale_steps`). Not in a checkpoint's layout:
+    /// counted since the learner started.
+    #[serde(skip)]
+    pub withdrawn_queries: u64,
 }
 
 /// What a checkpoint keeps of the feedback loop (D and the open queries live in the label
@@ -71,6 +75,8 @@ pub struct FeedbackState {
 struct InFlight {
     query: Box<Query>,
     sent: Instant,
+    /// Its two trajectories (for the bound on open queries per trajectory).
+    keys: [TrajKey; 2],
 }
 
 /// A background job: choosing queries or training the ensemble.
@@ -78,13 +84,16 @@ type Job = Box<dyn FnOnce() -> Result<JobDone> + Send>;
 
 /// What a background job hands back.
 pub enum JobDone {
-    /// The pairs chosen for session `session`, and the session's R_avg.
+    /// The pairs chosen for session `session`, and the session's R_avg; `quota` is what
+    /// the session (or, `top_up`, what it still owed) asked for.
     Chosen {
         session: u64,
         env_steps: u64,
         sampler: Sampler,
         pairs: Vec<(Side, Side)>,
         r_avg: Option<f32>,
+        quota: u64,
+        top_up: bool,
     },
     /// A trained ensemble, its statistics, and its accuracy on the new labels before.
     Trained {
@@ -140,6 +149,17 @@ pub struct Feedback {
     pub counters: Counters,
     /// The budget was found spent ([`Feedback::frozen`]).
     frozen: std::cell::Cell<bool>,
+    /// People at a labelling page now (their liveliness tokens), for the bound of open
+    /// queries per person.
+    labellers: u32,
+    /// Queries of the current session not asked yet for want of room, or to replace a
+    /// withdrawn one: asked as room appears (not saved: a restart's next session asks
+    /// its own).
+    owed: u64,
+    /// Trajectories observed, and how many there were when a top-up found no pair the
+    /// bound per trajectory allowed (none is tried again before a new one comes).
+    observed: u64,
+    top_up_stuck_at: Option<u64>,
 }
 
 impl Feedback {
@@ -168,6 +188,10 @@ impl Feedback {
             in_flight: BTreeMap::new(),
             job: None,
             frozen: std::cell::Cell::new(false),
+            labellers: 0,
+            owed: 0,
+            observed: 0,
+            top_up_stuck_at: None,
             // NOTE: its own stream of the run's seed, apart from the backbone's.
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f00d_0000_0001),
             counters: Counters {
@@ -200,12 +224,17 @@ impl Feedback {
         for (id, _, bytes) in self.store.open_queries()? {
             match wire::decode_stored_query(&self.run, &bytes) {
                 Ok(q) => {
+                    let keys = [
+                        self.store.trajectory_key(q.first.id)?,
+                        self.store.trajectory_key(q.second.id)?,
+                    ];
                     self.in_flight.insert(
                         id,
                         InFlight {
                             query: Box::new(q),
                             // NOTE: asked again at once after a restart.
                             sent: Instant::now() - Duration::from_secs(self.cfg.query_retry_s),
+                            keys,
                         },
                     );
                 }
@@ -304,6 +333,12 @@ impl Feedback {
     /// Keep a trajectory for queries.
     pub fn observe(&mut self, msg: &TrajectoryMsg) {
         self.buffer.push(Candidate::from_msg(msg));
+        self.observed += 1;
+    }
+
+    /// People at a labelling page now.
+    pub fn set_labellers(&mut self, n: u32) {
+        self.labellers = n;
     }
 
     /// The newest trained ensemble, if any.
@@ -316,7 +351,7 @@ impl Feedback {
     pub fn frozen(&self) -> Result<bool> {
         if !self.frozen.get() {
             self.frozen
-                .set(self.store.counts()?.asked >= self.cfg.max_feedback);
+                .set(self.store.counts()?.spent() >= self.cfg.max_feedback);
         }
         Ok(self.frozen.get())
     }
@@ -344,23 +379,46 @@ impl Feedback {
             && !self.frozen()?)
     }
 
-    /// Queries the bound on open ones leaves room for.
+    /// Queries the bounds on open ones leave room for: `max_open_queries` in all, and
+    /// `open_per_labeller` for each person at a page (as for one while nobody is, so that
+    /// the first to come finds a pair).
     fn room(&self) -> u64 {
-        match self.cfg.max_open_queries {
+        let mut bound = match self.cfg.max_open_queries {
             0 => u64::MAX,
-            n => n.saturating_sub(self.in_flight.len() as u64),
+            n => n,
+        };
+        if self.cfg.open_per_labeller > 0 {
+            let people = u64::from(self.labellers.max(1));
+            bound = bound.min(self.cfg.open_per_labeller.saturating_mul(people));
         }
+        bound.saturating_sub(self.in_flight.len() as u64)
     }
 
-    /// Queries the budget still allows, with `asked` asked so far.
-    pub fn budget_left(&self, asked: u64) -> u64 {
-        self.cfg.max_feedback.saturating_sub(asked)
+    /// Queries the budget still allows, with `spent` counted against it so far
+    /// ([`crate::pref::labels::Counts::spent`]).
+    pub fn budget_left(&self, spent: u64) -> u64 {
+        self.cfg.max_feedback.saturating_sub(spent)
     }
 
-    /// A session is due at `env_steps` and waits for open queries to be answered (the
-    /// bound on open queries is reached): the learner is waiting for labels.
+    /// A session is due at `env_steps`, or queries are owed, and they wait for open queries
+    /// to be answered (the bound on open queries is reached): the learner is waiting for
+    /// labels.
     pub fn waiting(&self, env_steps: u64) -> Result<bool> {
-        Ok(env_steps >= self.counters.next_session_at && self.room() == 0 && !self.frozen()?)
+        Ok(
+            (env_steps >= self.counters.next_session_at || self.owed > 0)
+                && self.room() == 0
+                && !self.frozen()?,
+        )
+    }
+
+    /// Queries are owed and there is room to ask them now (just in time, from the newest
+    /// episodes), unless the last try found no pair and no trajectory came since.
+    fn top_up_due(&self) -> Result<bool> {
+        Ok(self.owed > 0
+            && self.room() > 0
+            && self.buffer.len() >= 2
+            && self.top_up_stuck_at != Some(self.observed)
+            && !self.frozen()?)
     }
 
     /// New labels wait for training, and the session that asked them is answered (or the
@@ -380,7 +438,9 @@ impl Feedback {
         let work = if self.training_due(env_steps) {
             self.training()?
         } else if self.session_due(env_steps)? {
-            self.choosing(env_steps)?
+            self.choosing(env_steps, false)?
+        } else if self.top_up_due()? {
+            self.choosing(env_steps, true)?
         } else {
             return Ok(None);
         };
@@ -441,12 +501,18 @@ impl Feedback {
         }))
     }
 
-    /// The job of choosing a session's queries at `env_steps`: candidate pairs drawn from
-    /// the annotation buffer, the sampler keeps the best of them.
-    fn choosing(&mut self, env_steps: u64) -> Result<Job> {
-        let session = self.counters.sessions + 1;
-        let asked = self.store.counts()?.asked;
-        let k = self.cfg.session_queries(session, asked).min(self.room()) as usize;
+    /// The job of choosing a session's queries at `env_steps` (or, `top_up`, those the
+    /// current session still owes): candidate pairs drawn from the annotation buffer, the
+    /// sampler keeps the best of them that the bound per trajectory allows.
+    fn choosing(&mut self, env_steps: u64, top_up: bool) -> Result<Job> {
+        let session = self.counters.sessions + u64::from(!top_up);
+        let spent = self.store.counts()?.spent();
+        let quota = if top_up {
+            self.owed.min(self.budget_left(spent))
+        } else {
+            self.cfg.session_queries(session, spent)
+        };
+        let k = quota.min(self.room()) as usize;
         // NOTE: the first session is uniform: an untrained ensemble's disagreement
         // means nothing.
         let sampler = if session == 1 || !self.model.trained() {
@@ -454,11 +520,22 @@ impl Feedback {
         } else {
             self.cfg.sampler
         };
-        let n = if sampler == Sampler::Uniform {
+        let cap = self.cfg.queries_per_trajectory;
+        // NOTE: with a bound per trajectory, uniform draws more pairs than it keeps too,
+        // so that the ones the bound refuses leave enough.
+        let n = if sampler == Sampler::Uniform && cap == 0 {
             k
         } else {
             k * self.cfg.candidate_factor as usize
         };
+        let mut open: HashMap<TrajKey, u64> = HashMap::new();
+        if cap > 0 {
+            for f in self.in_flight.values() {
+                for key in f.keys {
+                    *open.entry(key).or_default() += 1;
+                }
+            }
+        }
         // NOTE: policy-aligned queries (QPA) draw from the newest trajectories only.
         let held = self.buffer.len();
         let recent = match self.cfg.query_recent {
@@ -475,21 +552,30 @@ impl Feedback {
             );
             candidates.push((self.side(&a), self.side(&b)));
         }
+        if cap > 0 {
+            candidates.retain(|(a, b)| {
+                open.get(&a.trajectory.key).copied().unwrap_or(0) < cap
+                    && open.get(&b.trajectory.key).copied().unwrap_or(0) < cap
+            });
+        }
         let r_avg = self.r_avg();
         let model = self.model.clone();
         Ok(Box::new(move || {
-            let chosen = if sampler == Sampler::Uniform {
-                (0..k.min(candidates.len())).collect()
+            let ranked = if sampler == Sampler::Uniform {
+                (0..candidates.len()).collect()
             } else {
                 let probs = model.preference_probs(&distinct_pairs(&candidates).pairs())?;
-                select(sampler, &probs, candidates.len(), k)
+                select(sampler, &probs, candidates.len(), candidates.len())
             };
+            let chosen = within_cap(&candidates, ranked, k, cap, open);
             Ok(JobDone::Chosen {
                 session,
                 env_steps,
                 sampler,
                 pairs: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
                 r_avg,
+                quota,
+                top_up,
             })
         }))
     }
@@ -518,9 +604,32 @@ impl Feedback {
                 sampler,
                 pairs,
                 r_avg,
+                quota,
+                top_up,
             } => {
                 let queries = self.ask(session, env_steps, sampler, &pairs, r_avg)?;
+                let asked = queries.len() as u64;
+                if top_up {
+                    self.owed = self.owed.saturating_sub(asked);
+                    self.top_up_stuck_at = (asked == 0).then_some(self.observed);
+                    tracing::debug!(
+                        session,
+                        env_steps,
+                        queries = asked,
+                        owed = self.owed,
+                        "owed queries asked"
+                    );
+                    return Ok((queries, None));
+                }
                 self.counters.sessions = session;
+                // NOTE: with people, what found no room is asked as room appears (until
+                // the next session, whose own quota takes over).
+                self.owed = if self.cfg.open_per_labeller > 0 {
+                    quota.saturating_sub(asked)
+                } else {
+                    0
+                };
+                self.top_up_stuck_at = None;
                 // NOTE: a session that waited for a training comes late; the next one is
                 // an interval after it, not at once.
                 while self.counters.next_session_at <= env_steps.max(now) {
@@ -529,7 +638,8 @@ impl Feedback {
                 tracing::info!(
                     session,
                     env_steps,
-                    queries = queries.len(),
+                    queries = asked,
+                    owed = self.owed,
                     sampler = ?sampler,
                     "feedback session: queries asked"
                 );
@@ -583,6 +693,10 @@ impl Feedback {
                 0 => 0,
                 s => asked_at_ms + s * 1000,
             };
+            let withdraw_at_steps = match self.cfg.query_stale_steps {
+                0 => 0,
+                s => env_steps + s,
+            };
             let asked = self.store.ask(
                 session,
                 sampler_name,
@@ -599,6 +713,7 @@ impl Feedback {
                         first: shown(a, first),
                         second: shown(b, second),
                         r_avg,
+                        withdraw_at_steps,
                     };
                     let bytes = wire::encode(&run, &Body::Query(Box::new(q.clone())));
                     built = Some(q);
@@ -615,6 +730,7 @@ impl Feedback {
                 InFlight {
                     query: Box::new(q.clone()),
                     sent: Instant::now(),
+                    keys: [a.trajectory.key, b.trajectory.key],
                 },
             );
             out.push(q);
@@ -697,17 +813,21 @@ impl Feedback {
         }))
     }
 
-    /// Queries to ask again (unanswered for `query_retry_s`); queries past
-    /// `query_expiry_s` expire instead.
-    pub fn retry(&mut self) -> Result<Vec<Query>> {
+    /// Queries to ask again (unanswered for `query_retry_s`) at `env_steps`; queries past
+    /// `query_expiry_s` expire instead, and those grown stale (`query_stale_steps`) are
+    /// withdrawn, a fresh one owed in each one's place.
+    pub fn retry(&mut self, env_steps: u64) -> Result<Vec<Query>> {
         let retry = Duration::from_secs(self.cfg.query_retry_s);
         let now = now_ms();
         let mut again = Vec::new();
         let mut expired = Vec::new();
+        let mut stale = Vec::new();
         for (id, f) in self.in_flight.iter_mut() {
             let age_ms = now.saturating_sub(f.query.asked_at_ms);
             if self.cfg.query_expiry_s > 0 && age_ms >= self.cfg.query_expiry_s * 1000 {
                 expired.push(*id);
+            } else if f.query.stale_at(env_steps) {
+                stale.push(*id);
             } else if f.sent.elapsed() >= retry {
                 f.sent = Instant::now();
                 again.push((*f.query).clone());
@@ -717,6 +837,20 @@ impl Feedback {
             self.store.expire(id, now)?;
             self.in_flight.remove(&id);
             tracing::warn!(query = id, "a query went unanswered too long: expired");
+        }
+        for id in stale {
+            // NOTE: the store says it was withdrawn; an answer that still comes (a person
+            // held the pair) is stored as late, exactly once.
+            if self.store.withdraw(id, now, env_steps)? {
+                self.owed += 1;
+                self.counters.withdrawn_queries += 1;
+            }
+            self.in_flight.remove(&id);
+            tracing::debug!(
+                query = id,
+                env_steps,
+                "a stale query withdrawn; a fresh one owed"
+            );
         }
         self.counters.retried_queries += again.len() as u64;
         Ok(again)
@@ -822,6 +956,38 @@ fn pseudo_labels(
         });
     }
     Ok(out)
+}
+
+/// The candidates to keep, `k` at most, in the order `ranked`, such that no trajectory is in
+/// more than `cap` open queries (0: no bound), `open` counting those open already.
+fn within_cap(
+    candidates: &[(Side, Side)],
+    ranked: Vec<usize>,
+    k: usize,
+    cap: u64,
+    mut open: HashMap<TrajKey, u64>,
+) -> Vec<usize> {
+    if cap == 0 {
+        return ranked.into_iter().take(k).collect();
+    }
+    let mut out = Vec::with_capacity(k);
+    for i in ranked {
+        if out.len() >= k {
+            break;
+        }
+        let (a, b) = (
+            candidates[i].0.trajectory.key,
+            candidates[i].1.trajectory.key,
+        );
+        let n = |key: &TrajKey| open.get(key).copied().unwrap_or(0);
+        if a == b || n(&a) >= cap || n(&b) >= cap {
+            continue;
+        }
+        *open.entry(a).or_default() += 1;
+        *open.entry(b).or_default() += 1;
+        out.push(i);
+    }
+    out
 }
 
 /// The soft target of a preference: P[second preferred].
@@ -1006,6 +1172,66 @@ mod tests {
         }
         assert_eq!(more.len(), 1);
         assert!(f.waiting(500).unwrap());
+    }
+
+    #[test]
+    fn with_people_queries_are_asked_just_in_time_and_a_stale_one_is_withdrawn() {
+        let cfg = PrefConfig {
+            unsup_steps: 0,
+            queries_per_session: 10,
+            feedback_interval: 10_000,
+            open_per_labeller: 2,
+            query_stale_steps: 500,
+            queries_per_trajectory: 1,
+            ..PrefConfig::plain()
+        };
+        let mut f = Feedback::new(&cfg, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
+        for seq in 0..40 {
+            f.observe(&msg(seq));
+        }
+        let run = |f: &mut Feedback, env_steps| {
+            let mut out = Vec::new();
+            for _ in 0..3 {
+                if let Some(done) = f.start(env_steps, true).unwrap() {
+                    out.extend(f.finish(done, env_steps).unwrap().0);
+                }
+            }
+            out
+        };
+        // Nobody at a page yet: room for one person's 2; the session's other 8 are owed.
+        let first = run(&mut f, 0);
+        assert_eq!(first.len(), 2);
+        assert!(f.waiting(0).unwrap());
+        assert!(first.iter().all(|q| q.withdraw_at_steps == 500));
+        // Two people: room for 4, asked at once from what is owed.
+        f.set_labellers(2);
+        let more = run(&mut f, 100);
+        assert_eq!(more.len(), 2);
+        assert_eq!(f.open(), 4);
+        // No trajectory is in two open queries.
+        let mut sides: Vec<u64> = first
+            .iter()
+            .chain(&more)
+            .flat_map(|q| [q.first.seed, q.second.seed])
+            .collect();
+        sides.sort();
+        sides.dedup();
+        assert_eq!(sides.len(), 8, "a trajectory in two open queries");
+        // Past 500 env steps the first two are stale: withdrawn, and fresh ones asked.
+        f.retry(550).unwrap();
+        assert_eq!(f.open(), 2);
+        let c = f.counts().unwrap();
+        assert_eq!((c.withdrawn, c.spent()), (2, 2));
+        let fresh = run(&mut f, 550);
+        assert_eq!(fresh.len(), 2);
+        assert!(fresh.iter().all(|q| q.withdraw_at_steps == 1_050));
+        // A withdrawn query's late answer is stored, once, and joins D.
+        let a = Answer::scripted(first[0].id, Preference::First, "human", "h-0", 1);
+        assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+        assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+        let c = f.counts().unwrap();
+        assert_eq!((c.late, c.labels(), c.withdrawn), (1, 1, 1));
+        assert_eq!(f.data.len(), 1);
     }
 
     /// A 200-step trajectory numbered `seq`: observation (seq, step), truth `seq` a step.

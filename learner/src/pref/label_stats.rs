@@ -303,7 +303,7 @@ mod tests {
             act_dim: 1,
             obs: &obs,
             actions: &actions,
-            features: if seq % 2 == 0 { &eats } else { &fasts },
+            features: if seq.is_multiple_of(2) { &eats } else { &fasts },
             segment: (0, 2),
         };
         let mut ids = Vec::new();

@@ -12,7 +12,7 @@
 //! observation at which each action was taken and the action as the policy gave it.
 //!
 //! ```text
-//! meta          key, value: `run` (the run's name) and `schema` (this layout, 3)
+//! meta          key, value: `run` (the run's name) and `schema` (this layout, 5)
 //! trajectories  id, actor, incarnation, seq (unique: the actor's numbering), seed,
 //!               policy_version, steps, obs_dim, act_dim,
 //!               obs (steps x obs_dim f32, little-endian), actions (steps x act_dim)
@@ -23,7 +23,9 @@
 //!               asked_at_ms, message (the encoded query while it is open, else NULL),
 //!               answer (NULL while open; first, second, equal, skip or expired),
 //!               teacher, teacher_id, took_ms, answered_at_ms,
-//!               expired_at_ms (kept when a late answer follows), answer_no (1, 2, ...
+//!               expired_at_ms (kept when a late answer follows), withdrawn_at_steps
+//!               (the learner's env steps when it withdrew the query as stale; its answer
+//!               is then expired until a late one comes), answer_no (1, 2, ...
 //!               in the order answers were stored); for a person's answer also
 //!               labeller, replays_first, replays_second (how often each attempt was
 //!               played) and shadow (the oracle's answer on the truth, never trained on)
@@ -64,7 +66,7 @@ use pbrl_common::wire::{Answer, Preference};
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 
 /// The layout this build writes and reads (`meta.schema`).
-pub const SCHEMA: u32 = 4;
+pub const SCHEMA: u32 = 5;
 
 const CREATE: &str = "
 CREATE TABLE meta (
@@ -105,6 +107,7 @@ CREATE TABLE queries (
     took_ms INTEGER,
     answered_at_ms INTEGER,
     expired_at_ms INTEGER,
+    withdrawn_at_steps INTEGER,
     answer_no INTEGER UNIQUE,
     labeller TEXT,
     replays_first INTEGER,
@@ -142,6 +145,13 @@ const MIGRATE_3_TO_4: &str = "
 ALTER TABLE trajectories ADD COLUMN features BLOB
     CHECK (features IS NULL OR length(features) % (4 * steps) = 0);
 UPDATE meta SET value = '4' WHERE key = 'schema';
+";
+
+/// What schema 5 added to schema 4: when a query was withdrawn as stale (NULL for every
+/// query of an older build, which withdrew none).
+const MIGRATE_4_TO_5: &str = "
+ALTER TABLE queries ADD COLUMN withdrawn_at_steps INTEGER;
+UPDATE meta SET value = '5' WHERE key = 'schema';
 ";
 
 const REPEATS: &str = "
@@ -297,8 +307,11 @@ pub struct Counts {
     pub second: u64,
     pub equal: u64,
     pub skipped: u64,
-    /// Given up on and never answered.
+    /// Given up on and never answered (the withdrawn among them).
     pub expired: u64,
+    /// Withdrawn as stale and never answered: a person never spent time on them, so they
+    /// do not count against the budget.
+    pub withdrawn: u64,
     /// Asked and waiting for an answer.
     pub open: u64,
     /// Answered after they had expired (counted in `answered` too).
@@ -306,6 +319,11 @@ pub struct Counts {
 }
 
 impl Counts {
+    /// Queries that count against the budget: all asked but the withdrawn ones.
+    pub fn spent(&self) -> u64 {
+        self.asked - self.withdrawn
+    }
+
     /// Labels in D: first + second + equal.
     pub fn labels(&self) -> u64 {
         self.first + self.second + self.equal
@@ -353,6 +371,9 @@ pub struct LabelStore {
     /// The trajectories table has its features column (false only for a schema-3 store
     /// opened read-only).
     features: bool,
+    /// The queries table has its withdrawn_at_steps column (false only for a store of
+    /// schema 3 or 4 opened read-only).
+    withdrawals: bool,
 }
 
 // NOTE: SQLite's integers are i64; u64 values are stored by their bits and read back the
@@ -389,6 +410,7 @@ impl LabelStore {
             conn,
             path: path.to_path_buf(),
             features: true,
+            withdrawals: true,
         };
         store
             .configure()
@@ -410,7 +432,8 @@ impl LabelStore {
 
     /// Open the label store at `path` to read it only (safe while its run goes): no
     /// upgrade, nothing written; a file that is not a label store of this schema (or of
-    /// schema 3, read as keeping no features) is refused.
+    /// schema 4, read as having withdrawn nothing, or 3, also as keeping no features) is
+    /// refused.
     pub fn open_read_only(path: &Path) -> Result<Self> {
         let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
             .with_context(|| format!("opening label store {}", path.display()))?;
@@ -420,18 +443,20 @@ impl LabelStore {
             })
             .optional()
             .with_context(|| format!("{} is not a label store", path.display()))?;
-        let features = schema.as_deref() == Some(SCHEMA.to_string().as_str());
-        if !features && schema.as_deref() != Some("3") {
+        let version = schema.as_deref().and_then(|s| s.parse::<u32>().ok());
+        if !version.is_some_and(|v| (3..=SCHEMA).contains(&v)) {
             bail!(
                 "label store {} has schema {}, this build reads {SCHEMA} (open it with its run once to upgrade it)",
                 path.display(),
                 schema.unwrap_or_else(|| "none".into())
             );
         }
+        let version = version.unwrap_or(SCHEMA);
         Ok(Self {
             conn,
             path: path.to_path_buf(),
-            features,
+            features: version >= 4,
+            withdrawals: version >= 5,
         })
     }
 
@@ -512,6 +537,12 @@ impl LabelStore {
             // NOTE: the trajectories of an older build keep no features: NULL, read as none.
             tx.execute_batch(MIGRATE_3_TO_4)
                 .with_context(|| format!("upgrading label store {} to schema 4", path.display()))?;
+            schema = "4".into();
+        }
+        if schema == "4" {
+            // NOTE: an older build withdrew no query: NULL throughout.
+            tx.execute_batch(MIGRATE_4_TO_5)
+                .with_context(|| format!("upgrading label store {} to schema 5", path.display()))?;
             schema = SCHEMA.to_string();
         }
         if schema != SCHEMA.to_string() {
@@ -710,6 +741,38 @@ impl LabelStore {
         Ok(changed == 1)
     }
 
+    /// The actor's numbering of stored trajectory `id`: (actor, incarnation, seq).
+    pub fn trajectory_key(&self, id: u64) -> Result<crate::pref::query::TrajKey> {
+        self.conn
+            .query_row(
+                "SELECT actor, incarnation, seq FROM trajectories WHERE id = ?1",
+                [int(id)],
+                |r| {
+                    Ok(crate::pref::query::TrajKey {
+                        actor: r.get::<_, i64>(0)? as u32,
+                        incarnation: uint(r.get(1)?),
+                        seq: uint(r.get(2)?),
+                    })
+                },
+            )
+            .with_context(|| format!("reading trajectory {id} of {}", self.path.display()))
+    }
+
+    /// Withdraw `query` as stale at the learner's `env_steps`: expired, noting why (a later
+    /// answer is still stored, as [`Stored::Late`]). True if it was open.
+    pub fn withdraw(&mut self, query: u64, at_ms: u64, env_steps: u64) -> Result<bool> {
+        let changed = self
+            .conn
+            .execute(
+                "UPDATE queries SET answer = 'expired', expired_at_ms = ?1,
+                     withdrawn_at_steps = ?2, message = NULL
+                 WHERE id = ?3 AND answer IS NULL",
+                params![int(at_ms), int(env_steps), int(query)],
+            )
+            .with_context(|| format!("withdrawing query {query} in {}", self.path.display()))?;
+        Ok(changed == 1)
+    }
+
     /// The open queries, oldest first: id, when first asked, and the message as sent.
     pub fn open_queries(&self) -> Result<Vec<(u64, u64, Vec<u8>)>> {
         let context = || format!("reading the open queries of {}", self.path.display());
@@ -742,18 +805,26 @@ impl LabelStore {
 
     /// The queries by state.
     pub fn counts(&self) -> Result<Counts> {
-        let (asked, first, second, equal, skipped, expired, open, late) = self
+        let withdrawn = if self.withdrawals {
+            "coalesce(sum(answer = 'expired' AND withdrawn_at_steps IS NOT NULL), 0)"
+        } else {
+            "0"
+        };
+        let (asked, first, second, equal, skipped, expired, open, late, withdrawn) = self
             .conn
             .query_row(
-                "SELECT count(*),
+                &format!(
+                    "SELECT count(*),
                         coalesce(sum(answer = 'first'), 0),
                         coalesce(sum(answer = 'second'), 0),
                         coalesce(sum(answer = 'equal'), 0),
                         coalesce(sum(answer = 'skip'), 0),
                         coalesce(sum(answer = 'expired'), 0),
                         coalesce(sum(answer IS NULL), 0),
-                        coalesce(sum(answer <> 'expired' AND expired_at_ms IS NOT NULL), 0)
-                 FROM queries",
+                        coalesce(sum(answer <> 'expired' AND expired_at_ms IS NOT NULL), 0),
+                        {withdrawn}
+                 FROM queries"
+                ),
                 [],
                 |r| {
                     Ok((
@@ -765,6 +836,7 @@ impl LabelStore {
                         uint(r.get(5)?),
                         uint(r.get(6)?),
                         uint(r.get(7)?),
+                        uint(r.get(8)?),
                     ))
                 },
             )
@@ -777,6 +849,7 @@ impl LabelStore {
             equal,
             skipped,
             expired,
+            withdrawn,
             open,
             late,
         })
@@ -1266,6 +1339,7 @@ mod tests {
              ALTER TABLE queries DROP COLUMN second_start;
              ALTER TABLE queries DROP COLUMN second_len;
              ALTER TABLE trajectories DROP COLUMN features;
+             ALTER TABLE queries DROP COLUMN withdrawn_at_steps;
              CREATE VIEW labels AS SELECT id AS query FROM queries;
              UPDATE meta SET value = '1' WHERE key = 'schema';",
         )
@@ -1308,6 +1382,7 @@ mod tests {
              ALTER TABLE queries DROP COLUMN second_start;
              ALTER TABLE queries DROP COLUMN second_len;
              ALTER TABLE trajectories DROP COLUMN features;
+             ALTER TABLE queries DROP COLUMN withdrawn_at_steps;
              CREATE VIEW labels AS SELECT id AS query FROM queries;
              UPDATE meta SET value = '2' WHERE key = 'schema';",
         )
@@ -1415,6 +1490,45 @@ mod tests {
         let after = store.labels_since(labels[0].answer_no).unwrap();
         assert_eq!(after.len(), 1);
         assert_eq!(after[0].query, q1.query);
+    }
+
+    #[test]
+    fn a_withdrawn_query_spends_no_budget_and_its_late_answer_is_stored_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut store = LabelStore::open(&dir.path().join("labels.sqlite"), "run").unwrap();
+        let q1 = ask(&mut store, &traj(0, 1, 3), &traj(1, 1, 3));
+        // A second query stays open throughout.
+        ask(&mut store, &traj(0, 2, 3), &traj(1, 2, 3));
+        assert!(store.withdraw(q1.query, 2_000, 7_000).unwrap());
+        assert!(
+            !store.withdraw(q1.query, 2_001, 7_100).unwrap(),
+            "withdrawn once"
+        );
+        let c = store.counts().unwrap();
+        assert_eq!((c.asked, c.expired, c.withdrawn, c.open), (2, 1, 1, 1));
+        assert_eq!(c.spent(), 1, "a withdrawn query spent no one's time");
+        assert_eq!(store.open_queries().unwrap().len(), 1);
+        // The person who held it answers after all: stored once, as late, and it counts.
+        assert_eq!(
+            answer(&mut store, q1.query, Preference::First),
+            Stored::Late
+        );
+        assert_eq!(
+            answer(&mut store, q1.query, Preference::First),
+            Stored::Repeated
+        );
+        let c = store.counts().unwrap();
+        assert_eq!((c.withdrawn, c.late, c.labels(), c.spent()), (0, 1, 1, 2));
+        let at: i64 = store
+            .conn
+            .query_row(
+                "SELECT withdrawn_at_steps FROM queries WHERE id = ?1",
+                [int(q1.query)],
+                |r| r.get(0),
+            )
+            .unwrap();
+        assert_eq!(at, 7_000, "where it was withdrawn is kept");
+        assert_eq!(store.labels_since(0).unwrap().len(), 1);
     }
 
     #[test]

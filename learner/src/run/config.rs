@@ -339,6 +339,26 @@ pub fn point_preset(horizon: u32) -> Vec<Setting> {
     v
 }
 
+/// With a person at the labelling page (`--teacher human`): a few queries open per person,
+/// chosen when one is ready for them; stale ones withdrawn for fresh ones; no attempt in
+/// two open queries at once.
+pub fn person_preset() -> Vec<Setting> {
+    use serde_json::json;
+    vec![
+        ("open_per_labeller", "/pref/open_per_labeller", json!(3)),
+        (
+            "query_stale_steps",
+            "/pref/query_stale_steps",
+            json!(20_000),
+        ),
+        (
+            "queries_per_trajectory",
+            "/pref/queries_per_trajectory",
+            json!(1),
+        ),
+    ]
+}
+
 /// Set each of `settings` the user did not give on the command line (`explicit` holds
 /// the clap ids of those given).
 pub fn apply_preset(
@@ -375,6 +395,10 @@ pub const RESUMABLE_FIELDS: &[&str] = &[
     "eval_sampled",
     "out",
     "learner_threads",
+    // How a person is asked (the pace of a sitting), not what is learnt.
+    "pref.open_per_labeller",
+    "pref.query_stale_steps",
+    "pref.queries_per_trajectory",
 ];
 
 /// Refuse a resume whose config contradicts the stored one (the world and the person's
@@ -390,7 +414,7 @@ pub fn check_resume(stored: &serde_json::Value, new: &serde_json::Value) -> Resu
                     } else {
                         format!("{path}.{k}")
                     };
-                    if path.is_empty() && RESUMABLE_FIELDS.contains(&k.as_str()) {
+                    if RESUMABLE_FIELDS.contains(&sub.as_str()) {
                         continue;
                     }
                     let null = serde_json::Value::Null;

@@ -159,7 +159,7 @@ impl Learner {
             evaluation::ask(bus, &mut self.curve, row, request).await?;
         }
         if let Some(f) = self.feedback.as_mut() {
-            bus.ask(&f.retry()?).await?;
+            bus.ask(&f.retry(self.p.env_steps)?).await?;
         }
         Ok(())
     }
@@ -363,7 +363,7 @@ impl Learner {
     /// Queries unanswered for a while are asked again (or expire).
     async fn ask_again(&mut self, bus: &LearnerBus) -> Result<()> {
         if let Some(f) = self.feedback.as_mut() {
-            bus.ask(&f.retry()?).await?;
+            bus.ask(&f.retry(self.p.env_steps)?).await?;
         }
         Ok(())
     }
@@ -384,7 +384,15 @@ impl Learner {
     /// teachers hear where the learner stands.
     pub async fn tick(&mut self, bus: &LearnerBus) -> Result<()> {
         self.p.eval_retries += evaluation::retry(bus, &mut self.curve, &mut self.actors).await?;
+        if let Some(f) = self.feedback.as_mut() {
+            f.set_labellers(bus.labellers() as u32);
+        }
         self.ask_again(bus).await?;
+        // NOTE: a query withdrawn lets an owed one go now (the deterministic mode does
+        // its feedback in place).
+        if !self.cfg.sync {
+            self.start_due()?;
+        }
         if let Some(s) = self.status(bus)? {
             bus.status(s).await?;
         }
@@ -402,7 +410,7 @@ impl Learner {
             asked: c.asked,
             answered: c.answered,
             open: c.open,
-            budget_left: f.budget_left(c.asked),
+            budget_left: f.budget_left(c.spent()),
             waiting: f.waiting(self.p.env_steps)?,
             labellers: bus.labellers() as u32,
         }))
