@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Installs what pbrl needs beyond the Rust toolchain: a TrueType font for the pictures
 # (`pbrl env render`), and headless Chromium with its WebDriver for the labelling page's
-# browser test (`tests/labelling.rs`). Safe to run again; does nothing when everything is
-# there.
+# browser test (`tests/labelling.rs`), and the stock Zenoh router `zenohd` (below). Safe
+# to run again; does nothing when everything is there.
 set -euo pipefail
 font=/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf
 need=()
@@ -21,3 +21,15 @@ if [ ${#need[@]} -gt 0 ]; then
     fi
 fi
 command -v cargo >/dev/null 2>&1 || { echo "pbrl: cargo not found; install Rust (rustup)" >&2; exit 1; }
+# The stock Zenoh router, zenohd, at the zenoh version of Cargo.lock with the TCP and TLS
+# transports pbrl uses: the multi-host, TLS and fault tests run it, and so does a
+# deployment across machines (docs/deploy.md). Built once (a few minutes) into
+# $CARGO_HOME/bin; PBRL_SKIP_ZENOHD=1 skips it (those tests then fail, saying why).
+want=$(awk '/^name = "zenoh"$/ { getline; gsub(/[^0-9.]/, ""); print; exit }' "$(dirname "$0")/../Cargo.lock")
+zenohd="${CARGO_HOME:-$HOME/.cargo}/bin/zenohd"
+have=$("$zenohd" --version 2>/dev/null | grep -oE '[0-9]+\.[0-9]+\.[0-9]+' | head -1 || true)
+if [ -z "${PBRL_SKIP_ZENOHD:-}" ] && [ "$have" != "$want" ]; then
+    echo "pbrl: building zenohd $want into $(dirname "$zenohd") (once, a few minutes)" >&2
+    cargo install zenohd --version "=$want" --locked --quiet --no-default-features \
+        --features zenoh/transport_tcp,zenoh/transport_tls
+fi

@@ -205,6 +205,13 @@ pub struct HumanArgs {
     /// default: the PBRL_TOKEN environment variable).
     #[arg(long)]
     pub token: Option<String>,
+    /// Human teacher: serve the page over HTTPS with this certificate (PEM; needed beyond
+    /// loopback; `deploy/certs.sh page:NAME@IP` makes one).
+    #[arg(long, value_name = "FILE", requires = "https_key")]
+    pub https_cert: Option<std::path::PathBuf>,
+    /// Human teacher: the private key of --https-cert (PEM).
+    #[arg(long, value_name = "FILE", requires = "https_cert")]
+    pub https_key: Option<std::path::PathBuf>,
     /// Human teacher: seconds an answer can be undone before it goes to the learner.
     #[arg(long, default_value_t = 10)]
     pub undo_s: u64,
@@ -235,6 +242,8 @@ impl HumanArgs {
                 .token
                 .clone()
                 .or_else(|| std::env::var("PBRL_TOKEN").ok().filter(|t| !t.is_empty())),
+            https_cert: self.https_cert.clone(),
+            https_key: self.https_key.clone(),
         }
     }
 }

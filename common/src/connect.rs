@@ -53,6 +53,19 @@ pub struct ConnectArgs {
     /// without losing its session; a peer that exits closes its links at once anyway).
     #[arg(long, default_value_t = DEFAULT_LEASE_SECS)]
     pub lease: u64,
+    /// TLS: the certificate authority that signed every pbrl certificate (PEM; made by
+    /// deploy/certs.sh). With --tls-cert and --tls-key, links over tls/ endpoints
+    /// authenticate both ways: this process shows its certificate and accepts only peers
+    /// whose certificate the CA signed.
+    #[arg(long = "tls-ca", value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
+    /// TLS: this process's certificate (PEM; its common name is its role for the router's
+    /// access control).
+    #[arg(long = "tls-cert", value_name = "FILE")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS: the private key of --tls-cert (PEM).
+    #[arg(long = "tls-key", value_name = "FILE")]
+    pub tls_key: Option<PathBuf>,
 }
 
 /// pbrl's default link lease, seconds.
@@ -69,6 +82,9 @@ impl Default for ConnectArgs {
             // NOTE: in code (tests, the in-process router) one try; the flag's default is 60.
             connect_timeout: 0,
             lease: DEFAULT_LEASE_SECS,
+            tls_ca: None,
+            tls_cert: None,
+            tls_key: None,
         }
     }
 }
@@ -140,6 +156,7 @@ impl ConnectArgs {
                 (self.lease * 1000).to_string(),
             )?;
         }
+        self.set_tls(&mut cfg)?;
         if !self.connect.is_empty() && self.connect_timeout > 0 {
             set(
                 &mut cfg,
@@ -148,6 +165,57 @@ impl ConnectArgs {
             )?;
         }
         Ok(cfg)
+    }
+
+    /// The TLS flags into `cfg`: all three or none; each file must be there. A tls/
+    /// endpoint without them (and without a config file) is refused by name.
+    fn set_tls(&self, cfg: &mut zenoh::Config) -> Result<()> {
+        let files = [
+            ("--tls-ca", &self.tls_ca),
+            ("--tls-cert", &self.tls_cert),
+            ("--tls-key", &self.tls_key),
+        ];
+        if files.iter().all(|(_, f)| f.is_none()) {
+            let tls = self
+                .connect
+                .iter()
+                .chain(&self.listen)
+                .find(|e| e.starts_with("tls/"));
+            if let (Some(e), None) = (tls, &self.config) {
+                bail!(
+                    "endpoint {e} is TLS: give --tls-ca, --tls-cert and --tls-key \
+                     (deploy/certs.sh makes them), or a --config that sets transport/link/tls"
+                );
+            }
+            return Ok(());
+        }
+        let mut paths = Vec::new();
+        for (flag, file) in files {
+            let Some(path) = file else {
+                bail!("{flag} is missing: TLS needs --tls-ca, --tls-cert and --tls-key together");
+            };
+            if !path.is_file() {
+                bail!("{flag} {}: no such file", path.display());
+            }
+            let path = path
+                .canonicalize()
+                .with_context(|| format!("{flag} {}", path.display()))?;
+            paths.push(format!("{:?}", path.display().to_string()));
+        }
+        let (ca, cert, key) = (&paths[0], &paths[1], &paths[2]);
+        for (k, v) in [
+            ("root_ca_certificate", ca),
+            ("connect_certificate", cert),
+            ("connect_private_key", key),
+            ("listen_certificate", cert),
+            ("listen_private_key", key),
+            ("enable_mtls", &"true".to_string()),
+        ] {
+            let key = format!("transport/link/tls/{k}");
+            cfg.insert_json5(&key, v)
+                .map_err(zerr(format!("setting Zenoh config {key} = {v}")))?;
+        }
+        Ok(())
     }
 
     /// Open a session with these flags.

@@ -88,18 +88,19 @@ pub async fn run_human(
     let desk = Arc::new(Mutex::new(Desk::open(
         human, &cfg.state, &cfg.run, &cfg.id,
     )?));
-    let listener = web::bind(&http).await?;
-    let addr = listener.local_addr()?;
+    let bound = web::bind(&http).await?;
+    let addr = bound.listener.local_addr()?;
     let page = Web::new(desk.clone(), world, http.token.clone());
     let (stop_http, http_stopped) = tokio::sync::oneshot::channel::<()>();
-    let server = tokio::spawn(async move {
-        axum::serve(listener, web::router(page))
-            .with_graceful_shutdown(async {
-                let _ = http_stopped.await;
-            })
-            .await
-    });
-    tracing::info!(run = %cfg.run, id = %cfg.id, "labelling page on http://{addr}/");
+    let server = tokio::spawn(web::serve(bound, web::router(page), async {
+        let _ = http_stopped.await;
+    }));
+    tracing::info!(
+        run = %cfg.run,
+        id = %cfg.id,
+        "labelling page on {}://{addr}/",
+        http.scheme()
+    );
     let summary = teach(cfg, desk, session, shutdown).await;
     let _ = stop_http.send(());
     match server.await {

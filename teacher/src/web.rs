@@ -17,6 +17,7 @@
 
 use std::collections::VecDeque;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use anyhow::{bail, Context, Result};
@@ -49,18 +50,85 @@ pub struct HttpConfig {
     pub addr: SocketAddr,
     /// Needed on any address but loopback.
     pub token: Option<String>,
+    /// HTTPS: the page's certificate chain (PEM); needed on any address but loopback.
+    pub https_cert: Option<PathBuf>,
+    /// HTTPS: the private key of `https_cert` (PEM).
+    pub https_key: Option<PathBuf>,
 }
 
 impl HttpConfig {
-    /// Refuse a bind beyond loopback without a token.
+    /// Refuse a bind beyond loopback without a token and HTTPS, and half of the HTTPS pair.
     pub fn validate(&self) -> Result<()> {
-        if !self.addr.ip().is_loopback() && self.token.as_deref().is_none_or(str::is_empty) {
+        match (&self.https_cert, &self.https_key) {
+            (Some(_), None) => {
+                bail!("--https-cert needs --https-key (the certificate's private key)")
+            }
+            (None, Some(_)) => bail!("--https-key needs --https-cert (the page's certificate)"),
+            _ => {}
+        }
+        if self.addr.ip().is_loopback() {
+            return Ok(());
+        }
+        if self.token.as_deref().is_none_or(str::is_empty) {
             bail!(
-                "--http {}: listening beyond loopback needs an access token (--token); put it behind TLS too (README)",
+                "--http {}: listening beyond loopback needs an access token (--token) and HTTPS (--https-cert, --https-key; docs/deploy.md)",
+                self.addr
+            );
+        }
+        if self.https_cert.is_none() {
+            bail!(
+                "--http {}: listening beyond loopback needs HTTPS: give --https-cert and --https-key (deploy/certs.sh makes them; docs/deploy.md)",
                 self.addr
             );
         }
         Ok(())
+    }
+
+    /// The URL scheme the page is served with.
+    pub fn scheme(&self) -> &'static str {
+        if self.https_cert.is_some() {
+            "https"
+        } else {
+            "http"
+        }
+    }
+
+    /// The TLS acceptor of `https_cert` and `https_key` (`None`: plain HTTP).
+    fn acceptor(&self) -> Result<Option<tokio_rustls::TlsAcceptor>> {
+        use tokio_rustls::rustls::pki_types::pem::PemObject;
+        use tokio_rustls::rustls::pki_types::{CertificateDer, PrivateKeyDer};
+        let (Some(cert), Some(key)) = (&self.https_cert, &self.https_key) else {
+            return Ok(None);
+        };
+        let chain: Vec<CertificateDer> = CertificateDer::pem_file_iter(cert)
+            .and_then(|it| it.collect::<Result<_, _>>())
+            .map_err(|e| anyhow::anyhow!("--https-cert {}: {e}", cert.display()))?;
+        if chain.is_empty() {
+            bail!(
+                "--https-cert {}: no certificate in the file",
+                cert.display()
+            );
+        }
+        let private = PrivateKeyDer::from_pem_file(key)
+            .map_err(|e| anyhow::anyhow!("--https-key {}: {e}", key.display()))?;
+        // NOTE: ring, as zenoh's TLS uses (aws-lc would need a C toolchain with cmake); its
+        // provider lacks only the post-quantum key exchange, which browsers fall back from.
+        #[allow(deprecated)]
+        let provider = Arc::new(tokio_rustls::rustls::crypto::ring::default_provider());
+        let mut tls = tokio_rustls::rustls::ServerConfig::builder_with_provider(provider)
+            .with_safe_default_protocol_versions()
+            .context("TLS protocol versions")?
+            .with_no_client_auth()
+            .with_single_cert(chain, private)
+            .with_context(|| {
+                format!(
+                    "--https-cert {} with --https-key {}",
+                    cert.display(),
+                    key.display()
+                )
+            })?;
+        tls.alpn_protocols = vec![b"http/1.1".to_vec()];
+        Ok(Some(tokio_rustls::TlsAcceptor::from(Arc::new(tls))))
     }
 }
 
@@ -357,12 +425,68 @@ async fn undo(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Respon
     }
 }
 
-/// Bind the page's address (checked first: beyond loopback only with a token).
-pub async fn bind(cfg: &HttpConfig) -> Result<tokio::net::TcpListener> {
+/// The page's socket, bound, with its TLS (checked first: beyond loopback only with a
+/// token and HTTPS; the certificate and key are read here, so a bad file fails at start).
+pub struct Bound {
+    pub listener: tokio::net::TcpListener,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+}
+
+/// Bind the page's address.
+pub async fn bind(cfg: &HttpConfig) -> Result<Bound> {
     cfg.validate()?;
-    tokio::net::TcpListener::bind(cfg.addr)
+    let tls = cfg.acceptor()?;
+    let listener = tokio::net::TcpListener::bind(cfg.addr)
         .await
-        .with_context(|| format!("listening on {} for the labelling page", cfg.addr))
+        .with_context(|| format!("listening on {} for the labelling page", cfg.addr))?;
+    Ok(Bound { listener, tls })
+}
+
+/// Serve `app` on `bound` (over TLS where it has a certificate) until `shutdown`.
+pub async fn serve(
+    bound: Bound,
+    app: Router,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let Some(tls) = bound.tls else {
+        return axum::serve(bound.listener, app)
+            .with_graceful_shutdown(shutdown)
+            .await;
+    };
+    tokio::pin!(shutdown);
+    loop {
+        let (tcp, peer) = tokio::select! {
+            _ = &mut shutdown => return Ok(()),
+            a = bound.listener.accept() => match a {
+                Ok(a) => a,
+                Err(e) => {
+                    // NOTE: out of file descriptors and the like: the next accept may work.
+                    tracing::warn!(error = %e, "the labelling page could not accept a connection");
+                    tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+        };
+        let (tls, app) = (tls.clone(), app.clone());
+        tokio::spawn(async move {
+            // NOTE: a client that does not speak TLS (plain HTTP to the HTTPS port) or does
+            // not trust the certificate fails its handshake here, seeing nothing.
+            let stream = match tls.accept(tcp).await {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::debug!(%peer, error = %e, "a TLS handshake at the labelling page failed");
+                    return;
+                }
+            };
+            let service = hyper_util::service::TowerToHyperService::new(app);
+            if let Err(e) = hyper::server::conn::http1::Builder::new()
+                .serve_connection(hyper_util::rt::TokioIo::new(stream), service)
+                .await
+            {
+                tracing::debug!(%peer, error = %e, "an HTTPS connection at the labelling page ended");
+            }
+        });
+    }
 }
 
 #[cfg(test)]

@@ -2,6 +2,8 @@
 //! closes them sooner, and every kind of bad message.
 #![allow(dead_code)] // NOTE: each test file uses its own part.
 
+pub mod deploy;
+
 use pbrl_actor::runner::Task;
 use pbrl_common::bus::wait_until;
 use pbrl_common::trajectory::TRAJECTORY_FORMAT;
