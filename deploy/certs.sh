@@ -123,9 +123,9 @@ p="pbrl/$run"
 subjects=
 policies=
 declare -A rules=(
-    [learner]='"learner-publishes", "learner-asked-for-weights", "learner-reads", "learner-receives"'
-    [actor]='"actor-publishes", "actor-reads", "actor-receives"'
-    [teacher]='"teacher-publishes", "teacher-reads", "teacher-receives"')
+    [learner]='"learner-publishes", "learner-asked-for-weights", "learner-told-of-readers", "learner-reads", "learner-receives"'
+    [actor]='"actor-publishes", "actor-told-of-readers", "actor-reads", "actor-receives"'
+    [teacher]='"teacher-publishes", "teacher-told-of-readers", "teacher-reads", "teacher-receives"')
 for role in learner actor teacher; do
     if [ "$(names $role)" = "[]" ]; then
         echo "note: no $role certificate in $out yet" >&2
@@ -169,6 +169,12 @@ cat > "$out/router-tls.json5" <<EOF
                     "$p/learner/0/query", "$p/learner/0/ack/*", "$p/learner/0/status"] },
       { id: "learner-asked-for-weights", permission: "allow", flows: ["egress"],
         messages: ["query"], key_exprs: ["$p/learner/0/weights"] },
+      // Told who reads what it publishes: a zenoh session sends a put only where the
+      // router has told it of a subscriber.
+      { id: "learner-told-of-readers", permission: "allow", flows: ["egress"],
+        messages: ["declare_subscriber"],
+        key_exprs: ["$p/learner/0/weights", "$p/learner/0/eval/*", "$p/learner/0/stop",
+                    "$p/learner/0/query", "$p/learner/0/ack/*", "$p/learner/0/status"] },
       { id: "learner-reads", permission: "allow", flows: ["ingress"],
         messages: ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
         key_exprs: ["$p/actor/*/trajectory", "$p/actor/*/eval", "$p/teacher/*/answer",
@@ -181,6 +187,9 @@ cat > "$out/router-tls.json5" <<EOF
       // evaluation requests and the stop.
       { id: "actor-publishes", permission: "allow", flows: ["ingress"],
         messages: ["put"], key_exprs: ["$p/actor/*/trajectory", "$p/actor/*/eval"] },
+      { id: "actor-told-of-readers", permission: "allow", flows: ["egress"],
+        messages: ["declare_subscriber", "declare_queryable"],
+        key_exprs: ["$p/actor/*/trajectory", "$p/actor/*/eval", "$p/learner/0/weights"] },
       { id: "actor-reads", permission: "allow", flows: ["ingress"],
         messages: ["declare_subscriber", "query"],
         key_exprs: ["$p/learner/0/weights", "$p/learner/0/eval/*", "$p/learner/0/stop"] },
@@ -190,6 +199,9 @@ cat > "$out/router-tls.json5" <<EOF
       // A teacher: answers and the labellers' tokens; it reads queries, acks and status.
       { id: "teacher-publishes", permission: "allow", flows: ["ingress"],
         messages: ["put", "liveliness_token"],
+        key_exprs: ["$p/teacher/*/answer", "$p/teacher/*/labeller/*"] },
+      { id: "teacher-told-of-readers", permission: "allow", flows: ["egress"],
+        messages: ["declare_subscriber", "declare_liveliness_subscriber"],
         key_exprs: ["$p/teacher/*/answer", "$p/teacher/*/labeller/*"] },
       { id: "teacher-reads", permission: "allow", flows: ["ingress"],
         messages: ["declare_subscriber"],

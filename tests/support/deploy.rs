@@ -350,6 +350,12 @@ impl Deployment {
             "--feedback-interval=600",
             "--queries-per-session=10",
             "--query-retry-s=1",
+            // NOTE: a gradient step of a larger net every env step holds the point task
+            // to tens of env steps/s, so the budget's sessions span tens of seconds of
+            // the run and a fault strikes while labels flow.
+            "--sac-update-every=1",
+            "--sac-hidden=256,256",
+            "--sac-batch=256",
             "--quiet",
         ]
         .iter()
