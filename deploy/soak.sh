@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# A soak of the bus: 16 actor processes and 4 labellers against one learner through the
 # NOTE: written, not yet run to the end (issue 25 is still open on it).
+# A soak of the bus: 16 actor processes and 4 labellers against one learner through the
 # stock zenohd router on loopback, for MINUTES, then a report.
 #
 #   bash deploy/soak.sh MINUTES [OUT]        (OUT default /tmp/pbrl-soak; emptied first)
