@@ -42,29 +42,6 @@ fn judged(log: &Path) -> Vec<u64> {
         .collect()
 }
 
-/// Rows of `sql` on the SQLite file `db` as JSON lines (Python's sqlite3; read-only).
-fn sql(db: &Path, sql: &str) -> Vec<serde_json::Value> {
-    const PY: &str = "import json, sqlite3, sys
-c = sqlite3.connect('file:' + sys.argv[1] + '?mode=ro', uri=True, timeout=5)
-c.row_factory = sqlite3.Row
-for r in c.execute(sys.argv[2]): print(json.dumps(dict(r)))";
-    let out = std::process::Command::new("python3")
-        .args(["-c", PY])
-        .arg(db)
-        .arg(sql)
-        .output()
-        .expect("python3 runs");
-    assert!(
-        out.status.success(),
-        "{sql}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
-}
-
 /// Wait (to a deadline) until the label store at `path` says yes.
 async fn store_until(path: &Path, what: &str, log: &Path, ready: impl Fn(&LabelStore) -> bool) {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(180);
@@ -175,7 +152,7 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
     );
     assert_eq!(first_judged.len(), asked.len(), "and each once");
     // Its disk holds every answer it sent, none acknowledged.
-    let kept = sql(
+    let kept = support::deploy::sql(
         &state,
         &format!("SELECT query, acked FROM outbox WHERE teacher = '{TEACHER}' ORDER BY query"),
     );
