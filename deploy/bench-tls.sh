@@ -1,5 +1,4 @@
 #!/usr/bin/env bash
-# NOTE: written, not yet run to the end (issue 25 is still open on it).
 # What TLS with access control costs: the same run (SAC on the feeding world's truth, 2
 # actor processes, seed 1, STEPS env steps, default 20,000) as separate processes through
 # the stock zenohd on loopback, over plain TCP (deploy/router.json5) and over TLS with

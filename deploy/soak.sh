@@ -1,5 +1,4 @@
 #!/usr/bin/env bash
-# NOTE: written, not yet run to the end (issue 25 is still open on it).
 # A soak of the bus: 16 actor processes and 4 labellers against one learner through the
 # stock zenohd router on loopback, for MINUTES, then a report.
 #
@@ -24,6 +23,13 @@ zenohd=${PBRL_ZENOHD:-$(command -v zenohd || echo "${CARGO_HOME:-$HOME/.cargo}/b
 [ -x "$bin" ] || { echo "soak: $bin not built (cargo build --release)" >&2; exit 1; }
 [ -x "$zenohd" ] || { echo "soak: no zenohd (bash deploy/setup.sh builds it)" >&2; exit 1; }
 port=${PBRL_SOAK_PORT:-17457}
+# The learner's two buffers grow by design until full: the replay buffer (264 bytes a
+# transition on the feeding world; default 1M) and the annotation buffer (about 31 kB a
+# trajectory; default 10,000). Here they hold 100,000 transitions and 500 trajectories, so
+# both are full within the warm-up (about 100 s here) and a learner's memory that still
+# grows after it is a leak. PBRL_SOAK_REPLAY and PBRL_SOAK_ANNOTATION set them.
+replay=${PBRL_SOAK_REPLAY:-100000}
+annotation=${PBRL_SOAK_ANNOTATION:-500}
 http=${PBRL_SOAK_HTTP:-18190}
 rm -rf "$out"
 mkdir -p "$out"
@@ -46,6 +52,7 @@ start router "$out/zenohd.log" "$zenohd" -c "$out/router.json5"
 until (exec 3<> "/dev/tcp/127.0.0.1/$port") 2>/dev/null; do sleep 0.2; done
 start learner "$out/learner.log" "$bin" learner --task feeding --algo sac --reward decoupled \
     --actors 16 --teacher human --steps 100000000 --max-feedback 1000000 \
+    --sac-replay-capacity "$replay" --annotation-capacity "$annotation" \
     --unsup-steps 2000 --feedback-interval 2000 --queries-per-session 50 --log-every 10000 \
     --quiet --run soak --out "$out/run" "${connect[@]}"
 learner=${pids[-1]}

@@ -33,6 +33,29 @@ fn softplus(x: f64) -> f64 {
     }
 }
 
+/// One temporal crop of label `label` of D: both sides' steps `starts[side] .. + len`.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Crop {
+    label: usize,
+    starts: [usize; 2],
+    len: usize,
+}
+
+impl Crop {
+    /// The crop as a label of its own: the two sides cut out, the label's target.
+    fn cut(&self, data: &[Labelled], model: &RewardModel) -> Result<Labelled> {
+        let l = &data[self.label];
+        let side = |s: &Segment, start: usize| -> Result<Arc<Segment>> {
+            Ok(Arc::new(s.cut(start, self.len, model.steps(s)?)))
+        };
+        Ok(Labelled {
+            first: side(&l.first, self.starts[0])?,
+            second: side(&l.second, self.starts[1])?,
+            target: l.target,
+        })
+    }
+}
+
 impl RewardModel {
     /// The mean over members of the fraction of `data`'s labels the member gets right
     /// (`P > 0.5` exactly when the second is preferred). Equal labels are left out; with
@@ -59,19 +82,20 @@ impl RewardModel {
             / q)
     }
 
-    /// `data` and, after it, `crops` temporal crops of each label: both sides cut to one
-    /// length drawn in `[crop_min, crop_max]` of the shorter side (at least one step),
-    /// each at its own uniform start; the label's target goes with them.
-    pub(super) fn with_crops(&mut self, data: &[Labelled]) -> Result<Vec<Labelled>> {
+    /// `crops` temporal crops of each label of `data`, drawn label by label: both sides
+    /// cut to one length drawn in `[crop_min, crop_max]` of the shorter side (at least one
+    /// step), each at its own uniform start; the label's target goes with them. A crop is
+    /// its bounds only ([`Crop`]): a training cuts the crops of each minibatch as it reaches
+    /// them, so its memory does not grow with `crops` times the labels.
+    pub(super) fn draw_crops(&mut self, data: &[Labelled]) -> Result<Vec<Crop>> {
         let (lo, hi) = (self.cfg.crop_min, self.cfg.crop_max);
         if !(0.0 < lo && lo <= hi && hi <= 1.0) {
             candle_core::bail!(
                 "reward_crop_min {lo} and reward_crop_max {hi} must satisfy 0 < min <= max <= 1"
             );
         }
-        let mut out = data.to_vec();
-        out.reserve(data.len() * self.cfg.crops);
-        for l in data {
+        let mut out = Vec::with_capacity(data.len() * self.cfg.crops);
+        for (label, l) in data.iter().enumerate() {
             let (n0, n1) = (self.steps(&l.first)?, self.steps(&l.second)?);
             let shorter = n0.min(n1) as f64;
             let (min_len, max_len) = (
@@ -80,18 +104,25 @@ impl RewardModel {
             );
             for _ in 0..self.cfg.crops {
                 let len = self.rng.random_range(min_len..=max_len.max(min_len));
-                let mut cut = |s: &Segment, n: usize| {
-                    let start = self.rng.random_range(0..=n - len);
-                    Arc::new(s.cut(start, len, n))
-                };
-                let first = cut(&l.first, n0);
-                let second = cut(&l.second, n1);
-                out.push(Labelled {
-                    first,
-                    second,
-                    target: l.target,
+                let first = self.rng.random_range(0..=n0 - len);
+                let second = self.rng.random_range(0..=n1 - len);
+                out.push(Crop {
+                    label,
+                    starts: [first, second],
+                    len,
                 });
             }
+        }
+        Ok(out)
+    }
+
+    /// `data` and, after it, its crops ([`Self::draw_crops`]) cut out.
+    #[cfg(test)]
+    pub(super) fn with_crops(&mut self, data: &[Labelled]) -> Result<Vec<Labelled>> {
+        let crops = self.draw_crops(data)?;
+        let mut out = data.to_vec();
+        for c in &crops {
+            out.push(c.cut(data, self)?);
         }
         Ok(out)
     }
@@ -244,15 +275,13 @@ impl RewardModel {
             .map(|s| &**s)
             .collect();
         self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
-        let augmented;
-        let data = if self.cfg.crops > 0 {
-            augmented = self.with_crops(data)?;
-            &augmented[..]
+        let crops = if self.cfg.crops > 0 {
+            self.draw_crops(data)?
         } else {
-            data
+            Vec::new()
         };
 
-        let n = data.len();
+        let n = data.len() + crops.len();
         // Crops follow D, each label's `crops` in D's order: a crop counts as its label.
         let base = labels.len() + pseudo.len();
         let counted: Vec<bool> = (0..n)
@@ -291,7 +320,22 @@ impl RewardModel {
             for (m, order) in orders.iter().enumerate() {
                 let (mut member_loss, mut right, mut hard) = (0.0, 0, 0);
                 for idx in order.chunks(self.cfg.batch) {
-                    let pairs: Vec<&Labelled> = idx.iter().map(|&i| &data[i]).collect();
+                    // Pair i is D's i-th, or past D, crop i - |D| cut now.
+                    let cut: Vec<Labelled> = idx
+                        .iter()
+                        .filter(|&&i| i >= data.len())
+                        .map(|&i| crops[i - data.len()].cut(data, self))
+                        .collect::<Result<_>>()?;
+                    let mut cut = cut.iter();
+                    let pairs: Vec<&Labelled> = idx
+                        .iter()
+                        .map(|&i| match data.get(i) {
+                            Some(l) => Ok(l),
+                            None => cut
+                                .next()
+                                .ok_or_else(|| candle_core::Error::Msg("crop count".into())),
+                        })
+                        .collect::<Result<_>>()?;
                     let mask: Vec<bool> = idx.iter().map(|&i| counted[i]).collect();
                     let (grads, l, r, h) =
                         self.member_gradients_counting(m, &pairs, Some(&mask), CHUNK_ROWS)?;
