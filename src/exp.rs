@@ -82,6 +82,15 @@ pub struct Cell {
     pub args: Vec<String>,
 }
 
+/// `n runs`, or `1 run`.
+fn runs(n: usize) -> String {
+    if n == 1 {
+        "1 run".into()
+    } else {
+        format!("{n} runs")
+    }
+}
+
 /// A grid value as text (in run names and flags).
 fn value_text(v: &toml::Value) -> Result<String> {
     Ok(match v {
@@ -96,10 +105,23 @@ fn value_text(v: &toml::Value) -> Result<String> {
 /// Whether `pbrl train`'s flag `--key` takes a value (`--reward-features=false`) rather
 /// than being a bare switch (`--sync`).
 fn takes_value(key: &str) -> bool {
-    let cli = <crate::Cli as clap::CommandFactory>::command();
-    cli.find_subcommand("train")
-        .and_then(|train| train.get_arguments().find(|a| a.get_long() == Some(key)))
-        .is_some_and(|a| a.get_action().takes_values())
+    // The long names of `pbrl train`'s flags that take a value, read once from clap.
+    static VALUED: std::sync::OnceLock<std::collections::BTreeSet<String>> =
+        std::sync::OnceLock::new();
+    VALUED
+        .get_or_init(|| {
+            let cli = <crate::Cli as clap::CommandFactory>::command();
+            cli.find_subcommand("train")
+                .map(|train| {
+                    train
+                        .get_arguments()
+                        .filter(|a| a.get_action().takes_values())
+                        .filter_map(|a| a.get_long().map(str::to_owned))
+                        .collect()
+                })
+                .unwrap_or_default()
+        })
+        .contains(key)
 }
 
 /// The flag for `key = value`: `--key=value`. A boolean of a switch is the bare switch or
@@ -118,19 +140,22 @@ impl Grid {
     pub fn load(path: &Path) -> Result<Self> {
         let text =
             std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let grid: Grid =
-            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        Self::parse(&text).with_context(|| format!("in {}", path.display()))
+    }
+
+    /// A grid from its TOML, checked: everything [`Self::cells`] relies on.
+    pub fn parse(text: &str) -> Result<Self> {
+        let grid: Grid = toml::from_str(text).context("parsing the grid")?;
         for (field, empty) in [
             ("algos", grid.algos.is_empty()),
             ("rewards", grid.rewards.is_empty()),
             ("seeds", grid.seeds.is_empty()),
         ] {
             if empty {
-                bail!("{}: {field} is empty", path.display());
+                bail!("{field} is empty");
             }
         }
-        grid.check()
-            .with_context(|| format!("in {}", path.display()))?;
+        grid.check()?;
         Ok(grid)
     }
 
@@ -154,7 +179,6 @@ impl Grid {
 
     /// Every run, sorted by name.
     pub fn cells(&self) -> Result<Vec<Cell>> {
-        self.check()?;
         // Every variant's flags over [set]'s (none: [set] alone, the method unnamed).
         type Flags = BTreeMap<String, toml::Value>;
         fn over<'a>(
@@ -351,10 +375,10 @@ pub fn run(args: RunArgs) -> Result<()> {
         }
     }
     println!(
-        "experiment {} in {}: {} runs in this shard ({}/{}), {} to run, {parallel} at a time",
+        "experiment {} in {}: {} in this shard ({}/{}), {} to run, {parallel} at a time",
         grid.name,
         out.display(),
-        cells.len(),
+        runs(cells.len()),
         i,
         n,
         todo.len()
@@ -460,7 +484,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     report(&out, &cells, &running);
     if !failed.is_empty() {
-        bail!("{} runs failed: {}", failed.len(), failed.join(", "));
+        bail!("{} failed: {}", runs(failed.len()), failed.join(", "));
     }
     if stop.load(std::sync::atomic::Ordering::Relaxed) {
         println!("stopped; the same command carries on");
@@ -512,7 +536,7 @@ mod tests {
 
     #[test]
     fn a_grid_expands_to_named_runs() {
-        let g: Grid = toml::from_str(
+        let g = Grid::parse(
             r#"
 name = "t"
 algos = ["sac", "ppo"]
@@ -549,7 +573,7 @@ preset = ["default", "paper"]
 
     #[test]
     fn variants_are_methods_whose_flags_override_the_set() {
-        let g: Grid = toml::from_str(
+        let g = Grid::parse(
             r#"
 name = "t"
 algos = ["sac"]
@@ -596,7 +620,7 @@ reward-features = false
     }
 
     fn grid(extra: &str) -> Result<Vec<Cell>> {
-        let g: Grid = toml::from_str(&format!(
+        let g = Grid::parse(&format!(
             "name = \"t\"\nalgos = [\"sac\"]\nrewards = [\"true\"]\nsteps = 100\n{extra}"
         ))?;
         g.cells()
