@@ -259,13 +259,11 @@ impl Feedback {
             return Ok(s.clone());
         }
         let s = self.store.segment(id)?;
-        let seg = Arc::new(Segment {
+        Ok(Arc::new(Segment {
             obs: s.obs,
             actions: s.actions,
             features: s.features,
-        });
-        self.segments.insert(id, seg.clone());
-        Ok(seg)
+        }))
     }
 
     /// Steps `start .. start + len` of stored trajectory `id`, for D (the whole
@@ -275,6 +273,8 @@ impl Feedback {
         let a = self.model.act_dim();
         let steps = whole.actions.len() / a.max(1);
         if start == 0 && len == steps {
+            // Shared by every label of this trajectory (kept while D holds it).
+            self.segments.insert(id, whole.clone());
             return Ok(whole);
         }
         if len == 0 || start + len > steps {
@@ -806,11 +806,25 @@ impl Feedback {
                 return Ok(Answered::Dropped);
             }
         }
+        self.prune_segments();
         Ok(Answered::Ack(AnswerAck {
             teacher_id: a.teacher_id.clone(),
             queries: vec![a.query],
             repeats: Vec::new(),
         }))
+    }
+
+    /// Forget the whole trajectories no query in flight compares and D does not share:
+    /// a label of a segment holds its own cut, so keeping the whole trajectory of every
+    /// query ever asked would grow the learner by two trajectories a label.
+    fn prune_segments(&mut self) {
+        let open: std::collections::HashSet<u64> = self
+            .in_flight
+            .values()
+            .flat_map(|f| [f.query.first.id, f.query.second.id])
+            .collect();
+        self.segments
+            .retain(|id, s| Arc::strong_count(s) > 1 || open.contains(id));
     }
 
     /// Queries to ask again (unanswered for `query_retry_s`) at `env_steps`; queries past
@@ -1294,13 +1308,45 @@ mod tests {
         assert_eq!(l.first.obs.len(), 50 * 2);
         assert_eq!(l.first.obs[1], q.first.start as f32);
         assert_eq!(l.second.obs[99], (q.second.start + 49) as f32);
-        // The same after a restart: D is read back from the store with its segments.
-        f.reload().unwrap();
-        let back = f.data.last().unwrap();
-        assert_eq!(
-            (&back.first.obs, &back.second.obs),
-            (&l.first.obs, &l.second.obs)
+        // The whole trajectories stay in memory only while a query in flight compares
+        // them: once every query is answered, D holds only its segments.
+        let open = |f: &Feedback, id: u64| {
+            f.in_flight
+                .values()
+                .any(|o| o.query.first.id == id || o.query.second.id == id)
+        };
+        for id in [q.first.id, q.second.id] {
+            assert_eq!(
+                f.segments.contains_key(&id),
+                open(&f, id),
+                "trajectory {id}"
+            );
+        }
+        for q in &queries[1..] {
+            let a = Answer::scripted(q.id, Preference::First, "oracle", "o-0", 1);
+            assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+        }
+        assert!(f.in_flight.is_empty());
+        assert!(
+            f.segments.is_empty(),
+            "{} whole trajectories kept",
+            f.segments.len()
         );
+        // The same after a restart: D is read back from the store with its segments.
+        let d = |f: &Feedback| {
+            let mut d: Vec<_> = f
+                .data
+                .iter()
+                .map(|l| (l.first.obs.clone(), l.second.obs.clone()))
+                .collect();
+            d.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            d
+        };
+        let before = d(&f);
+        f.reload().unwrap();
+        assert_eq!(f.data.len(), 20);
+        assert_eq!(d(&f), before);
+        assert!(f.segments.is_empty(), "a reload keeps whole trajectories");
     }
 
     #[test]
