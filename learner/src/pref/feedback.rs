@@ -254,7 +254,7 @@ impl Feedback {
         Ok(())
     }
 
-    fn segment(&mut self, id: u64) -> Result<Arc<Segment>> {
+    fn segment(&self, id: u64) -> Result<Arc<Segment>> {
         if let Some(s) = self.segments.get(&id) {
             return Ok(s.clone());
         }

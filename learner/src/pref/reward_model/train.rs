@@ -320,22 +320,15 @@ impl RewardModel {
             for (m, order) in orders.iter().enumerate() {
                 let (mut member_loss, mut right, mut hard) = (0.0, 0, 0);
                 for idx in order.chunks(self.cfg.batch) {
-                    // Pair i is D's i-th, or past D, crop i - |D| cut now.
-                    let cut: Vec<Labelled> = idx
-                        .iter()
-                        .filter(|&&i| i >= data.len())
-                        .map(|&i| crops[i - data.len()].cut(data, self))
-                        .collect::<Result<_>>()?;
-                    let mut cut = cut.iter();
-                    let pairs: Vec<&Labelled> = idx
+                    // Pair i is D's i-th (its Arcs shared), or past D, crop i - |D| cut now.
+                    let batch: Vec<Labelled> = idx
                         .iter()
                         .map(|&i| match data.get(i) {
-                            Some(l) => Ok(l),
-                            None => cut
-                                .next()
-                                .ok_or_else(|| candle_core::Error::Msg("crop count".into())),
+                            Some(l) => Ok(l.clone()),
+                            None => crops[i - data.len()].cut(data, self),
                         })
                         .collect::<Result<_>>()?;
+                    let pairs: Vec<&Labelled> = batch.iter().collect();
                     let mask: Vec<bool> = idx.iter().map(|&i| counted[i]).collect();
                     let (grads, l, r, h) =
                         self.member_gradients_counting(m, &pairs, Some(&mask), CHUNK_ROWS)?;
