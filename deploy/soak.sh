@@ -74,6 +74,7 @@ done
 # Resident memory of every process every 5 s: "seconds kind pid kB".
 secs=$((minutes * 60))
 t0=$SECONDS
+date +%s > "$out/t0"  # the epoch second of t = 0, to line the labels' times up with rss.txt
 while [ $((SECONDS - t0)) -lt "$secs" ]; do
     for k in "${!pids[@]}"; do
         kb=$(awk '/^VmRSS/ { print $2 }' "/proc/${pids[$k]}/status" 2>/dev/null || true)
@@ -129,4 +130,22 @@ for kind in ["router", "learner", "actor", "teacher", "labeller"]:
     warm = s[min(ts, key=lambda t: abs(t - secs / 4))]
     mib = lambda kb: f"{kb / 1024:,.0f}"
     print(f"{kind:10} {mib(warm):>14} {mib(max(s.values())):>9} {mib(s[ts[-1]]):>9}")
+# The learner holds D, the labelled segments, by design: what it grew after the warm-up set
+# beside what D grew by over the same window (each side's steps of observation, action and
+# comfort features, 4 bytes a number).
+s = samples["learner"]
+ts = sorted(s)
+t_warm = min(ts, key=lambda t: abs(t - secs / 4))
+t0 = int(open(f"{out}/t0").read())
+def d_at(t):
+    return ro(f"{out}/run/labels.sqlite").execute("""
+        SELECT count(*), coalesce(sum(
+            l.first_len * (a.obs_dim + a.act_dim + coalesce(length(a.features), 0) / 4 / a.steps)
+          + l.second_len * (b.obs_dim + b.act_dim + coalesce(length(b.features), 0) / 4 / b.steps)), 0) * 4
+        FROM labels l JOIN trajectories a ON a.id = l.first JOIN trajectories b ON b.id = l.second
+        WHERE l.answered_at_ms <= ?""", ((t0 + t) * 1000,)).fetchone()
+(n0, b0), (n1, b1) = d_at(t_warm), d_at(ts[-1])
+grew = (s[ts[-1]] - s[t_warm]) / 1024
+print(f"learner from {t_warm} s to {ts[-1]} s: grew {grew:,.1f} MiB while D grew from {n0:,} to {n1:,} "
+      f"labels, {(b1 - b0) / 2**20:,.1f} MiB ({(b1 - b0) / max(n1 - n0, 1) / 1000:,.1f} kB a label)")
 EOF

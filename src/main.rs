@@ -126,6 +126,8 @@ fn labels(cmd: LabelsCommand) -> Result<()> {
 fn main() -> Result<()> {
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
+    // NOTE: before any thread starts (glibc's arenas are made as threads first allocate).
+    pbrl_learner::run::service::steady_allocator();
     let matches = Cli::command().get_matches();
     let mut command = match Cli::from_arg_matches(&matches) {
         Ok(cli) => cli.command,

@@ -101,6 +101,8 @@ pub enum JobDone {
         stats: TrainStats,
         labels: usize,
         accuracy_new: f64,
+        /// The job's wall time.
+        took: Duration,
     },
 }
 
@@ -484,6 +486,7 @@ impl Feedback {
             };
         let tau = self.cfg.pseudo_tau;
         Ok(Box::new(move || {
+            let start = Instant::now();
             let accuracy_new = if trained_before {
                 model.accuracy(&new)?
             } else {
@@ -497,6 +500,7 @@ impl Feedback {
                 stats,
                 labels,
                 accuracy_new,
+                took: start.elapsed(),
             })
         }))
     }
@@ -650,6 +654,7 @@ impl Feedback {
                 stats,
                 labels,
                 accuracy_new,
+                took,
             } => {
                 self.counters.trained_labels = labels;
                 self.counters.trainings += 1;
@@ -661,6 +666,7 @@ impl Feedback {
                     pairs = stats.pairs,
                     accuracy = format!("{:.3}", stats.accuracy),
                     accuracy_on_new = format!("{accuracy_new:.3}"),
+                    ms = took.as_millis() as u64,
                     "reward ensemble trained"
                 );
                 self.model = Arc::from(model);
