@@ -70,7 +70,8 @@ pub async fn run(
 /// - At most two arenas. glibc gives threads that allocate at once arenas of their own (up
 ///   to 8 a core), each a heap that grows on its own and hardly shrinks; the learner's
 ///   updates, its feedback jobs (a thread each), zenoh's and tokio's threads all allocate.
-///   `MALLOC_ARENA_MAX`, where set, is left to rule.
+///
+/// glibc's own variables, `MALLOC_MMAP_THRESHOLD_` and `MALLOC_ARENA_MAX`, where set, rule.
 pub fn steady_allocator() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
@@ -79,7 +80,9 @@ pub fn steady_allocator() {
         // SAFETY: mallopt only sets parameters of glibc's allocator; they change where later
         // blocks come from, never a block already handed out.
         unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
+            if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
+                libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD);
+            }
             if std::env::var_os("MALLOC_ARENA_MAX").is_none() {
                 libc::mallopt(libc::M_ARENA_MAX, ARENAS);
             }
