@@ -123,29 +123,39 @@ samples = collections.defaultdict(lambda: collections.defaultdict(int))
 for line in open(f"{out}/rss.txt"):
     t, kind, pid, kb = line.split()
     samples[kind][int(t)] = max(samples[kind][int(t)], int(kb))
+kinds = ["router", "learner", "actor", "teacher", "labeller"]
+ts = sorted(samples["learner"])
+nearest = lambda x: min(ts, key=lambda t: abs(t - x))
+t_warm = nearest(secs / 4)
 print(f"{'process':10} {'after warm-up':>14} {'peak':>9} {'final':>9}  (MiB, largest of its kind)")
-for kind in ["router", "learner", "actor", "teacher", "labeller"]:
+for kind in kinds:
     s = samples[kind]
-    ts = sorted(s)
-    warm = s[min(ts, key=lambda t: abs(t - secs / 4))]
     mib = lambda kb: f"{kb / 1024:,.0f}"
-    print(f"{kind:10} {mib(warm):>14} {mib(max(s.values())):>9} {mib(s[ts[-1]]):>9}")
+    print(f"{kind:10} {mib(s[t_warm]):>14} {mib(max(s.values())):>9} {mib(s[max(s)]):>9}")
 # The learner holds D, the labelled segments, by design: what it grew after the warm-up set
 # beside what D grew by over the same window (each side's steps of observation, action and
 # comfort features, 4 bytes a number).
-s = samples["learner"]
-ts = sorted(s)
-t_warm = min(ts, key=lambda t: abs(t - secs / 4))
 t0 = int(open(f"{out}/t0").read())
+labels = ro(f"{out}/run/labels.sqlite")
 def d_at(t):
-    return ro(f"{out}/run/labels.sqlite").execute("""
+    return labels.execute("""
         SELECT count(*), coalesce(sum(
             l.first_len * (a.obs_dim + a.act_dim + coalesce(length(a.features), 0) / 4 / a.steps)
           + l.second_len * (b.obs_dim + b.act_dim + coalesce(length(b.features), 0) / 4 / b.steps)), 0) * 4
         FROM labels l JOIN trajectories a ON a.id = l.first JOIN trajectories b ON b.id = l.second
         WHERE l.answered_at_ms <= ?""", ((t0 + t) * 1000,)).fetchone()
 (n0, b0), (n1, b1) = d_at(t_warm), d_at(ts[-1])
-grew = (s[ts[-1]] - s[t_warm]) / 1024
+grew = (samples["learner"][ts[-1]] - samples["learner"][t_warm]) / 1024
 print(f"learner from {t_warm} s to {ts[-1]} s: grew {grew:,.1f} MiB while D grew from {n0:,} to {n1:,} "
       f"labels, {(b1 - b0) / 2**20:,.1f} MiB ({(b1 - b0) / max(n1 - n0, 1) / 1000:,.1f} kB a label)")
+# Every 30 s: each kind's memory, the labels stored and D's size (rss-30s.csv).
+with open(f"{out}/rss-30s.csv", "w") as f:
+    print("# largest resident memory (MiB) of each process kind, the sample nearest each 30 s; "
+          "labels stored by then and D's segments (MiB)", file=f)
+    print("seconds," + ",".join(f"{k}_mib" for k in kinds) + ",labels_stored,d_mib", file=f)
+    for mark in range(0, ts[-1] + 1, 30):
+        t = nearest(mark)
+        n, b = d_at(t)
+        mibs = [f"{samples[k].get(t, 0) / 1024:.0f}" for k in kinds]
+        print(",".join([str(t), *mibs, str(n), f"{b / 2**20:.1f}"]), file=f)
 EOF
