@@ -124,14 +124,16 @@ for line in open(f"{out}/rss.txt"):
     t, kind, pid, kb = line.split()
     samples[kind][int(t)] = max(samples[kind][int(t)], int(kb))
 kinds = ["router", "learner", "actor", "teacher", "labeller"]
+# A kind's sample nearest a time: the loop above stamps each line with its own second, so
+# two kinds' samples of one round may fall a second apart.
+nearest = lambda s, x: min(s, key=lambda t: abs(t - x))
 ts = sorted(samples["learner"])
-nearest = lambda x: min(ts, key=lambda t: abs(t - x))
-t_warm = nearest(secs / 4)
+t_warm = nearest(ts, secs / 4)
 print(f"{'process':10} {'after warm-up':>14} {'peak':>9} {'final':>9}  (MiB, largest of its kind)")
 for kind in kinds:
     s = samples[kind]
     mib = lambda kb: f"{kb / 1024:,.0f}"
-    print(f"{kind:10} {mib(s[t_warm]):>14} {mib(max(s.values())):>9} {mib(s[max(s)]):>9}")
+    print(f"{kind:10} {mib(s[nearest(s, secs / 4)]):>14} {mib(max(s.values())):>9} {mib(s[max(s)]):>9}")
 # The learner holds D, the labelled segments, by design: what it grew after the warm-up set
 # beside what D grew by over the same window (each side's steps of observation, action and
 # comfort features, 4 bytes a number).
@@ -154,8 +156,8 @@ with open(f"{out}/rss-30s.csv", "w") as f:
           "labels stored by then and D's segments (MiB)", file=f)
     print("seconds," + ",".join(f"{k}_mib" for k in kinds) + ",labels_stored,d_mib", file=f)
     for mark in range(0, ts[-1] + 1, 30):
-        t = nearest(mark)
+        t = nearest(ts, mark)
         n, b = d_at(t)
-        mibs = [f"{samples[k].get(t, 0) / 1024:.0f}" for k in kinds]
+        mibs = [f"{samples[k][nearest(samples[k], t)] / 1024:.0f}" for k in kinds]
         print(",".join([str(t), *mibs, str(n), f"{b / 2**20:.1f}"]), file=f)
 EOF
