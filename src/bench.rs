@@ -42,6 +42,18 @@ pub enum BenchCommand {
         #[arg(last = true)]
         train_flags: Vec<String>,
     },
+    /// `pbrl eval`'s speed: a run's policy on the same episodes on 1 thread and on every
+    /// core, alternated (1, N, 1, N, ...), with the ratio of the medians.
+    Eval {
+        /// The run folder.
+        run: std::path::PathBuf,
+        /// Episodes per timing.
+        #[arg(long, default_value_t = 100)]
+        episodes: u32,
+        /// Timings of each thread count.
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+    },
     /// What a checkpoint costs with a full SAC replay buffer (feeding-sized transitions).
     Checkpoint {
         /// Transitions in the buffer.
@@ -64,6 +76,59 @@ fn cpu_model() -> String {
                 .map(|m| m.trim().to_string())
         })
         .unwrap_or_else(|| "unknown".into())
+}
+
+/// `pbrl eval`'s episodes on 1 thread and on every core, alternated.
+fn bench_eval(run: &std::path::Path, episodes: u32, rounds: usize) -> Result<()> {
+    use pbrl_actor::evaluate::{evaluate_seeds, Acting};
+    let runs = crate::eval::open_runs(&[run.to_path_buf()], None)?;
+    let world = crate::eval::Person::own().world_for(&runs[0], false)?;
+    let seeds = crate::eval::seeds(episodes);
+    let cores = crate::eval::threads(None);
+    println!(
+        "pbrl eval speed: {} ({} env steps), {episodes} episodes, the mean action; CPU {}, {cores} cores",
+        run.display(),
+        runs[0].policy.env_steps,
+        cpu_model()
+    );
+    let mut times: std::collections::BTreeMap<usize, Vec<f64>> = Default::default();
+    let mut first: Option<Vec<pbrl_actor::evaluate::EpisodeStats>> = None;
+    for round in 0..rounds.max(1) {
+        for threads in [1, cores] {
+            let start = std::time::Instant::now();
+            let e = evaluate_seeds(
+                &runs[0].policy.weights,
+                &world,
+                &seeds,
+                Acting::Mean,
+                threads,
+                &|| {},
+            )?;
+            let s = start.elapsed().as_secs_f64();
+            // NOTE: the thread count must not change what the episodes did.
+            match &first {
+                Some(f) if *f != e => anyhow::bail!("{threads} threads gave other episodes than 1"),
+                Some(_) => {}
+                None => first = Some(e),
+            }
+            println!(
+                "round {round}: {threads} thread(s): {s:.2} s ({:.1} episodes/s)",
+                episodes as f64 / s
+            );
+            times.entry(threads).or_default().push(s);
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let one = median(times.get_mut(&1).expect("timed on one thread"));
+    let all = median(times.get_mut(&cores).expect("timed on every core"));
+    println!(
+        "median: 1 thread {one:.2} s, {cores} threads {all:.2} s: {:.2}x",
+        one / all
+    );
+    Ok(())
 }
 
 /// `pbrl train`'s arguments, parsed from a command line (for the benchmark).
@@ -158,6 +223,11 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
                 &train_flags,
             )
         }
+        BenchCommand::Eval {
+            run,
+            episodes,
+            rounds,
+        } => return bench_eval(&run, episodes, rounds),
         BenchCommand::Checkpoint {
             transitions,
             increment,

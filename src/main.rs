@@ -1,9 +1,12 @@
 //! `pbrl`: the command line. It parses arguments, sets up logging and calls the crates.
 
 mod bench;
+mod eval;
 mod exp;
+mod export;
 mod plot;
 mod train;
+mod watch;
 
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
@@ -39,6 +42,15 @@ enum Command {
     /// The label store of a run: `pbrl labels stats RUN`.
     #[command(subcommand)]
     Labels(LabelsCommand),
+    /// A run's learnt policy judged on fixed episodes, for its own person or others, beside
+    /// other runs: `pbrl eval RUN... [--people DIR]`.
+    Eval(eval::EvalArgs),
+    /// A run's learnt policy on screen, as the labelling page draws attempts (two runs side
+    /// by side on the same episodes): a self-contained HTML file and an animated GIF.
+    Watch(watch::WatchArgs),
+    /// A run's policy as an ONNX model for a robot stack, with its card (JSON):
+    /// `pbrl export RUN --onnx FILE`.
+    Export(export::ExportArgs),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -201,6 +213,9 @@ fn main() -> Result<()> {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
         Command::Bench(cmd) => return bench::run(cmd),
         Command::Labels(cmd) => return labels(cmd),
+        Command::Eval(a) => return eval::eval(a),
+        Command::Watch(a) => return watch::watch(a),
+        Command::Export(a) => return export::export(a),
         Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
         Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),
         _ => {}
@@ -216,7 +231,13 @@ fn main() -> Result<()> {
             Command::Learner(a) => train::learner(a).await,
             Command::Actor(a) => train::actor(a).await,
             Command::Teacher(a) => train::teacher(a).await,
-            Command::Env(_) | Command::Bench(_) | Command::Exp(_) | Command::Labels(_) => {
+            Command::Env(_)
+            | Command::Bench(_)
+            | Command::Exp(_)
+            | Command::Labels(_)
+            | Command::Eval(_)
+            | Command::Watch(_)
+            | Command::Export(_) => {
                 unreachable!("handled above")
             }
         }

@@ -136,6 +136,7 @@ impl LearnArgs {
                     "{}: finished at {steps} env steps (asked for {total}); nothing to do (--fresh starts over)",
                     folder.root.display(),
                 );
+                print!("{}", next_steps(&folder.root));
                 return Ok(false);
             }
         }
@@ -477,10 +478,21 @@ pub async fn train(args: TrainArgs) -> Result<()> {
             last.eval_return_truth,
             100.0 * last.eval_success_rate,
             last.eval_return_human,
-            out.map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
+            out.as_ref().map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
         );
     }
+    if let Some(dir) = out {
+        print!("{}", next_steps(&dir));
+    }
     Ok(())
+}
+
+/// What a finished run's folder is for next: its policy judged, watched and exported.
+pub fn next_steps(dir: &std::path::Path) -> String {
+    let d = dir.display();
+    format!(
+        "next:\n  pbrl eval {d}      its policy on 100 fixed episodes: success, returns, what the person minds (--people DIR: for others)\n  pbrl watch {d}     its episodes as the labelling page draws them: {d}/watch.html and watch.gif\n  pbrl export {d} --onnx {d}/policy.onnx     an ONNX model and its card for a robot stack\n"
+    )
 }
 
 impl TrainArgs {

@@ -13,6 +13,7 @@ pub use config::{Profile, WorldConfig};
 pub use world::{FeedingWorld, Step, WorldError, ACT_DIM, OBS_DIM};
 pub mod cli;
 pub mod controller;
+pub mod evaluate;
 pub mod render;
 pub mod replay;
 pub mod rollout;

@@ -81,7 +81,7 @@ pub fn episode_seed(run_seed: u64, actor: u32, made_at: u64, k: u32) -> u64 {
 }
 
 /// One episode of `task` with `policy` (the mean action when `deterministic`).
-fn episode(
+pub(crate) fn episode(
     world: Option<&mut FeedingWorld>,
     policy: &Policy,
     seed: u64,
@@ -118,7 +118,7 @@ fn episode(
 }
 
 /// The generator of an episode's sampling noise, from its seed.
-fn noise(seed: u64) -> ChaCha8Rng {
+pub(crate) fn noise(seed: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa0_c710_u64)
 }
 

@@ -3,6 +3,7 @@
 #![allow(dead_code)] // NOTE: each test file uses its own part.
 
 pub mod deploy;
+pub mod web;
 
 use pbrl_actor::runner::Task;
 use pbrl_common::bus::wait_until;

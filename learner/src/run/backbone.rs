@@ -84,6 +84,17 @@ impl LastLosses {
     }
 }
 
+/// SAC trains on raw observations: the normaliser that travels with its weights changes
+/// nothing (`(x - 0) / sqrt(1 - 1e-8 + 1e-8)`, no clip).
+pub fn identity_norm(obs_dim: usize) -> RunningNorm {
+    RunningNorm {
+        mean: vec![0.0; obs_dim],
+        var: vec![1.0 - 1e-8; obs_dim],
+        count: 1.0,
+        clip: f32::MAX as f64,
+    }
+}
+
 /// What observing one trajectory did.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Observed {
@@ -221,13 +232,7 @@ impl Backbone {
         let (tensors, norm, random) = match self {
             Backbone::Sac(s) => (
                 export(&s.policy.varmap)?,
-                // NOTE: SAC trains on raw observations; an identity normaliser travels.
-                RunningNorm {
-                    mean: vec![0.0; obs_dim],
-                    var: vec![1.0 - 1e-8; obs_dim],
-                    count: 1.0,
-                    clip: f32::MAX as f64,
-                },
+                identity_norm(obs_dim),
                 env_steps < s.cfg.random_steps,
             ),
             Backbone::Ppo(p, _) => (export(&p.policy.varmap)?, p.norm.clone(), false),

@@ -8,6 +8,8 @@ pub mod checkpoint;
 pub mod config;
 pub mod curve;
 pub mod evaluation;
+pub mod export;
 pub mod learner;
 pub mod run_folder;
+pub mod saved_policy;
 pub mod service;

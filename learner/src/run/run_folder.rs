@@ -399,6 +399,34 @@ impl RunFolder {
         Ok(None)
     }
 
+    /// The checkpoint at `env_steps` (checked); the error lists the steps there are.
+    pub fn checkpoint_at(&self, env_steps: u64) -> Result<Checkpoint> {
+        let dirs = self.checkpoint_dirs()?;
+        let steps_of = |d: &PathBuf| -> Option<u64> {
+            let name = d.file_name()?.to_str()?;
+            name.strip_suffix(".old").unwrap_or(name).parse().ok()
+        };
+        match dirs.iter().find(|d| steps_of(d) == Some(env_steps)) {
+            Some(dir) => self.load(dir),
+            None => {
+                let have: Vec<String> = dirs
+                    .iter()
+                    .filter_map(steps_of)
+                    .map(|s| s.to_string())
+                    .collect();
+                bail!(
+                    "{} has no checkpoint at {env_steps} env steps (it has: {})",
+                    self.root.display(),
+                    if have.is_empty() {
+                        "none".to_string()
+                    } else {
+                        have.join(", ")
+                    }
+                )
+            }
+        }
+    }
+
     /// A checked file of a checkpoint.
     pub fn read(&self, c: &Checkpoint, name: &str) -> Result<Vec<u8>> {
         let s = c
