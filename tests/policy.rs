@@ -262,7 +262,7 @@ fn the_exported_model_runs_in_tract_to_pbrls_actions() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
     let obs: Vec<f32> = (0..n * 25)
         .map(|i| match i % 25 {
-            10..=16 => rng.random_range(-3.14..3.14),
+            10..=16 => rng.random_range(-std::f32::consts::PI..std::f32::consts::PI),
             24 => rng.random_range(0.0..5.0),
             _ => rng.random_range(-1.0..1.0),
         })
@@ -427,4 +427,87 @@ fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
         "{closest}"
     );
     std::fs::write(out.join("page.png"), browser.screenshot()).unwrap();
+}
+
+/// A random policy of `hidden` layers with a normaliser that does something (PPO's kind:
+/// means, variances, a clip that bites).
+fn synthetic(hidden: &[usize], seed: u64) -> pbrl_common::wire::Weights {
+    use pbrl_common::wire::{Tensor, Weights};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let sizes: Vec<usize> = std::iter::once(25)
+        .chain(hidden.iter().copied())
+        .chain(std::iter::once(14))
+        .collect();
+    let mut tensors = Vec::new();
+    for (i, w) in sizes.windows(2).enumerate() {
+        let scale = 1.0 / (w[0] as f32).sqrt();
+        tensors.push(Tensor {
+            name: format!("pi.l{i}.weight"),
+            shape: vec![w[1], w[0]],
+            data: (0..w[0] * w[1])
+                .map(|_| rng.random_range(-scale..scale))
+                .collect(),
+        });
+        tensors.push(Tensor {
+            name: format!("pi.l{i}.bias"),
+            shape: vec![w[1]],
+            data: (0..w[1]).map(|_| rng.random_range(-0.1..0.1)).collect(),
+        });
+    }
+    Weights {
+        version: 1,
+        env_steps: 0,
+        obs_dim: 25,
+        act_dim: 7,
+        tensors,
+        obs_mean: (0..25).map(|_| rng.random_range(-0.5..0.5)).collect(),
+        obs_var: (0..25).map(|_| rng.random_range(0.01..2.0)).collect(),
+        obs_clip: 2.0,
+        random_actions: false,
+        episodes_per_actor: 0,
+        acks: Vec::new(),
+    }
+}
+
+#[test]
+fn the_model_normalises_and_clips_as_pbrl_does() {
+    use pbrl_learner::run::export::{model, Message};
+    use tract_onnx::prelude::*;
+    let w = synthetic(&[32, 16], 3);
+    let bytes = model(&w, "test", &[]).unwrap().write_to_bytes().unwrap();
+    let n = 1000;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    // Observations far enough out that the clip at 2 standard deviations bites.
+    let obs: Vec<f32> = (0..n * 25).map(|_| rng.random_range(-4.0..4.0)).collect();
+    let runnable = tract_onnx::onnx()
+        .model_for_read(&mut std::io::Cursor::new(bytes))
+        .unwrap()
+        .with_input_fact(0, f32::fact([n, 25]).into())
+        .unwrap()
+        .into_optimized()
+        .unwrap()
+        .into_runnable()
+        .unwrap();
+    let out = runnable
+        .run(tvec!(Tensor::from_shape(&[n, 25], &obs)
+            .unwrap()
+            .into_tvalue()))
+        .unwrap();
+    let actions = out[0].to_plain_array_view::<f32>().unwrap();
+    let policy = Policy::from_weights(&w).unwrap();
+    let mut worst = 0f32;
+    for k in 0..n {
+        let mine = policy
+            .act(&obs[k * 25..(k + 1) * 25], &mut rng, true)
+            .unwrap();
+        for (i, m) in mine.iter().enumerate() {
+            worst = worst.max((m - actions[[k, i]]).abs());
+        }
+    }
+    assert!(worst <= 1e-5, "tract and pbrl differ by up to {worst}");
+    // A policy whose last layer is not twice the action wide is refused by name.
+    let mut bad = synthetic(&[8], 4);
+    bad.act_dim = 6;
+    let e = model(&bad, "test", &[]).unwrap_err().to_string();
+    assert!(e.contains("not 25 to 2 x 6"), "{e}");
 }

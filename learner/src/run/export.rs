@@ -164,8 +164,11 @@ fn int_attr(name: &str, v: i64) -> AttributeProto {
     a
 }
 
-/// The policy's layers `pi.l<i>` in order: (weight [out, in], bias [out]).
-fn layers(w: &Weights) -> Result<Vec<(&[usize], &[f32], &[f32])>> {
+/// One linear layer of the policy: the weight's shape [out, in], its values and the bias.
+type Layer<'a> = (&'a [usize], &'a [f32], &'a [f32]);
+
+/// The policy's layers `pi.l<i>` in order.
+fn layers(w: &Weights) -> Result<Vec<Layer<'_>>> {
     let mut out = Vec::new();
     for i in 0.. {
         let find = |suffix: &str| {
