@@ -293,7 +293,7 @@ pub fn watch(args: WatchArgs) -> Result<()> {
     let gif_needed = !args.no_gif;
     let browser = chromium();
     if gif_needed && browser.is_none() {
-        bail!("the GIF is drawn by headless Chromium, and none was found (Debian: apt-get install chromium, as deploy/setup.sh does; PBRL_CHROMIUM names another); --no-gif writes the HTML file alone");
+        tracing::warn!("no GIF: it is drawn by headless Chromium, and none was found (Debian: apt-get install chromium, as deploy/setup.sh does; PBRL_CHROMIUM names another); the HTML file is written alone");
     }
     let html = args
         .html
