@@ -106,6 +106,36 @@ pub fn open_runs(dirs: &[PathBuf], checkpoint: Option<u64>) -> Result<Vec<Run>> 
         .collect()
 }
 
+/// Runs judged side by side must share a world beyond the person (else their episodes
+/// differ): each run's world against the first's, every field but `profile`.
+pub fn same_world(runs: &[Run], other_world: bool) -> Result<()> {
+    let Some(first) = runs.first() else {
+        return Ok(());
+    };
+    for r in &runs[1..] {
+        let (Some(a), Some(b)) = (first.world.as_object(), r.world.as_object()) else {
+            continue;
+        };
+        let differ: Vec<&str> = a
+            .keys()
+            .chain(b.keys())
+            .filter(|k| k.as_str() != "profile" && a.get(k.as_str()) != b.get(k.as_str()))
+            .map(|k| k.as_str())
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        if !differ.is_empty() && !other_world {
+            bail!(
+                "runs {} and {} were trained in different worlds ({} differ): their episodes would not be the same (--other-world judges each in its own world)",
+                first.name,
+                r.name,
+                differ.join(", ")
+            );
+        }
+    }
+    Ok(())
+}
+
 /// `base` with `over`'s fields put in (objects merged key by key, anything else replaced).
 fn merge(base: &mut serde_json::Value, over: &serde_json::Value) {
     match (base, over) {
@@ -194,11 +224,22 @@ impl Person {
         files.iter().map(|f| Self::from_file(f)).collect()
     }
 
-    /// The person `--world` / `--profile` name, or the run's own.
-    pub fn from_args(on: &OnArgs) -> Result<Self> {
+    /// The person `--world` / `--profile` name, or else the first run's own (every run is
+    /// then judged for the person the first was trained for).
+    pub fn from_args(on: &OnArgs, runs: &[Run]) -> Result<Self> {
         let mut p = match &on.world {
             Some(f) => Self::from_file(f)?,
-            None => Self::own(),
+            None => match runs.first().and_then(|r| r.world.get("profile")) {
+                Some(profile) => Self {
+                    name: String::new(),
+                    file: Some((
+                        runs[0].policy.folder.join("config.json"),
+                        serde_json::json!({ "profile": profile }),
+                    )),
+                    profile: None,
+                },
+                None => Self::own(),
+            },
         };
         if let Some(name) = &on.profile {
             let profile = Profile::by_name(name).map_err(|e| anyhow::anyhow!("--profile: {e}"))?;
@@ -664,11 +705,12 @@ pub fn eval(args: EvalArgs) -> Result<()> {
     if args.threads == Some(0) {
         bail!("--threads: 0; at least one");
     }
+    let runs = open_runs(&args.runs, args.on.checkpoint)?;
+    same_world(&runs, args.on.other_world)?;
     let people = match &args.people {
         Some(dir) => Person::folder(dir)?,
-        None => vec![Person::from_args(&args.on)?],
+        None => vec![Person::from_args(&args.on, &runs)?],
     };
-    let runs = open_runs(&args.runs, args.on.checkpoint)?;
     // Every world is checked before the first episode runs.
     for p in &people {
         for r in &runs {

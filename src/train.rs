@@ -136,7 +136,9 @@ impl LearnArgs {
                     "{}: finished at {steps} env steps (asked for {total}); nothing to do (--fresh starts over)",
                     folder.root.display(),
                 );
-                print!("{}", next_steps(&folder.root));
+                if self.task == Task::Feeding {
+                    print!("{}", next_steps(&folder.root));
+                }
                 return Ok(false);
             }
         }
@@ -461,6 +463,8 @@ pub async fn train(args: TrainArgs) -> Result<()> {
     if !args.learn.prepare()? {
         return Ok(());
     }
+    // NOTE: eval, watch and export take feeding runs (the point task has nothing to show).
+    let feeding = args.learn.task == Task::Feeding;
     let (summary, out) = train_in_process(args).await?;
     if summary.stopped {
         println!(
@@ -481,7 +485,7 @@ pub async fn train(args: TrainArgs) -> Result<()> {
             out.as_ref().map(|p| p.join("curve.csv").display().to_string()).unwrap_or_default()
         );
     }
-    if let Some(dir) = out {
+    if let (Some(dir), true) = (out, feeding) {
         print!("{}", next_steps(&dir));
     }
     Ok(())

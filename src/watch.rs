@@ -13,7 +13,7 @@ use pbrl_actor::policy::Policy;
 use pbrl_actor::replay::{readout, scene, watch as replay};
 use pbrl_actor::{FeedingWorld, WorldConfig};
 
-use crate::eval::{open_runs, seeds, OnArgs, Person, Run};
+use crate::eval::{open_runs, same_world, seeds, OnArgs, Person, Run};
 
 #[derive(clap::Args, Debug)]
 pub struct WatchArgs {
@@ -285,7 +285,8 @@ pub fn watch(args: WatchArgs) -> Result<()> {
         bail!("--step: 0; at least 1");
     }
     let runs = open_runs(&args.runs, args.on.checkpoint)?;
-    let person = Person::from_args(&args.on)?;
+    same_world(&runs, args.on.other_world)?;
+    let person = Person::from_args(&args.on, &runs)?;
     let worlds = runs
         .iter()
         .map(|r| person.world_for(r, args.on.other_world))

@@ -295,7 +295,7 @@ fn the_exported_model_runs_in_tract_to_pbrls_actions() {
 
 #[test]
 fn bad_input_is_refused_by_name() {
-    let (a, _, root) = runs();
+    let (a, b, root) = runs();
     let refused = |args: &[&str], want: &[&str]| {
         let (ok, _, stderr) = pbrl(args);
         assert!(!ok, "{args:?} was taken");
@@ -344,6 +344,23 @@ fn bad_input_is_refused_by_name() {
         &["export", s(&empty), "--onnx", s(&root.join("x.onnx"))],
         &["is not a run folder"],
     );
+    // Two runs of different worlds are not judged side by side as if on the same episodes.
+    let other = root.join("other-world");
+    let copy = Command::new("cp")
+        .args(["-r", s(b), s(&other)])
+        .status()
+        .unwrap();
+    assert!(copy.success());
+    let cfg = other.join("config.json");
+    let mut c: Value = serde_json::from_str(&std::fs::read_to_string(&cfg).unwrap()).unwrap();
+    c["world"]["config"]["substeps"] = 4.into();
+    std::fs::write(&cfg, c.to_string()).unwrap();
+    refused(
+        &["eval", s(a), s(&other), "--episodes=1"],
+        &["different worlds", "substeps"],
+    );
+    let (ok, _, stderr) = pbrl(&["eval", s(a), s(&other), "--episodes=1", "--other-world"]);
+    assert!(ok, "{stderr}");
     // With --other-world it is evaluated there, as asked.
     let (ok, _, stderr) = pbrl(&[
         "eval",
