@@ -233,9 +233,39 @@ fn eval_judges_every_run_for_every_person_on_the_same_episodes() {
     );
 }
 
+/// The largest difference between the actions of the ONNX model `bytes`, run in tract, and
+/// `policy`'s mean actions, on `obs` (rows of 25).
+fn worst_difference(bytes: &[u8], policy: &Policy, obs: &[f32]) -> f32 {
+    use tract_onnx::prelude::*;
+    let n = obs.len() / 25;
+    let runnable = tract_onnx::onnx()
+        .model_for_read(&mut std::io::Cursor::new(bytes))
+        .unwrap()
+        .with_input_fact(0, f32::fact([n, 25]).into())
+        .unwrap()
+        .into_optimized()
+        .unwrap()
+        .into_runnable()
+        .unwrap();
+    let input = Tensor::from_shape(&[n, 25], obs).unwrap();
+    let out = runnable.run(tvec!(input.into_tvalue())).unwrap();
+    let actions = out[0].to_plain_array_view::<f32>().unwrap();
+    assert_eq!(actions.shape(), [n, 7]);
+    let mut rng = rand::rng();
+    let mut worst = 0f32;
+    for k in 0..n {
+        let mine = policy
+            .act(&obs[k * 25..(k + 1) * 25], &mut rng, true)
+            .unwrap();
+        for (i, m) in mine.iter().enumerate() {
+            worst = worst.max((m - actions[[k, i]]).abs());
+        }
+    }
+    worst
+}
+
 #[test]
 fn the_exported_model_runs_in_tract_to_pbrls_actions() {
-    use tract_onnx::prelude::*;
     let (a, _, root) = runs();
     let onnx = root.join("export/policy.onnx");
     let (ok, stdout, stderr) = pbrl(&["export", s(a), "--onnx", s(&onnx), "--episodes=2"]);
@@ -267,29 +297,8 @@ fn the_exported_model_runs_in_tract_to_pbrls_actions() {
             _ => rng.random_range(-1.0..1.0),
         })
         .collect();
-    let model = tract_onnx::onnx()
-        .model_for_path(&onnx)
-        .unwrap()
-        .with_input_fact(0, f32::fact([n, 25]).into())
-        .unwrap()
-        .into_optimized()
-        .unwrap()
-        .into_runnable()
-        .unwrap();
-    let input = Tensor::from_shape(&[n, 25], &obs).unwrap();
-    let out = model.run(tvec!(input.into_tvalue())).unwrap();
-    let actions = out[0].to_plain_array_view::<f32>().unwrap();
-    assert_eq!(actions.shape(), [n, 7]);
-    let mut worst = 0f32;
-    let mut rng = rand::rng();
-    for k in 0..n {
-        let mine = pbrl_policy
-            .act(&obs[k * 25..(k + 1) * 25], &mut rng, true)
-            .unwrap();
-        for (i, m) in mine.iter().enumerate() {
-            worst = worst.max((m - actions[[k, i]]).abs());
-        }
-    }
+    let bytes = std::fs::read(&onnx).unwrap();
+    let worst = worst_difference(&bytes, &pbrl_policy, &obs);
     assert!(worst <= 1e-5, "tract and pbrl differ by up to {worst}");
 }
 
@@ -489,38 +498,14 @@ fn synthetic(hidden: &[usize], seed: u64) -> pbrl_common::wire::Weights {
 #[test]
 fn the_model_normalises_and_clips_as_pbrl_does() {
     use pbrl_learner::run::export::{model, Message};
-    use tract_onnx::prelude::*;
     let w = synthetic(&[32, 16], 3);
     let bytes = model(&w, "test", &[]).unwrap().write_to_bytes().unwrap();
     let n = 1000;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
     // Observations far enough out that the clip at 2 standard deviations bites.
     let obs: Vec<f32> = (0..n * 25).map(|_| rng.random_range(-4.0..4.0)).collect();
-    let runnable = tract_onnx::onnx()
-        .model_for_read(&mut std::io::Cursor::new(bytes))
-        .unwrap()
-        .with_input_fact(0, f32::fact([n, 25]).into())
-        .unwrap()
-        .into_optimized()
-        .unwrap()
-        .into_runnable()
-        .unwrap();
-    let out = runnable
-        .run(tvec!(Tensor::from_shape(&[n, 25], &obs)
-            .unwrap()
-            .into_tvalue()))
-        .unwrap();
-    let actions = out[0].to_plain_array_view::<f32>().unwrap();
     let policy = Policy::from_weights(&w).unwrap();
-    let mut worst = 0f32;
-    for k in 0..n {
-        let mine = policy
-            .act(&obs[k * 25..(k + 1) * 25], &mut rng, true)
-            .unwrap();
-        for (i, m) in mine.iter().enumerate() {
-            worst = worst.max((m - actions[[k, i]]).abs());
-        }
-    }
+    let worst = worst_difference(&bytes, &policy, &obs);
     assert!(worst <= 1e-5, "tract and pbrl differ by up to {worst}");
     // A policy whose last layer is not twice the action wide is refused by name.
     let mut bad = synthetic(&[8], 4);
