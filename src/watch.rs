@@ -341,6 +341,10 @@ pub fn watch(args: WatchArgs) -> Result<()> {
         let capture_page = dir.join("capture.html");
         std::fs::write(&capture_page, page_with(&data)?)
             .with_context(|| format!("writing {}", capture_page.display()))?;
+        eprintln!(
+            "drawing the GIF's frames in headless Chromium ({})...",
+            browser.display()
+        );
         let frames = capture(&browser, &capture_page);
         let _ = std::fs::remove_dir_all(&dir);
         let frames = frames?;
