@@ -417,6 +417,11 @@ fn measures() -> Vec<Measure> {
     ];
     debug_assert_eq!(TERMS.len(), TERM_NAMES.len());
     m.extend(TERMS);
+    m.push((
+        "term_taste",
+        "  of it: taste no feature names (C_ap, C_bite)",
+        |e| e.taste,
+    ));
     m.extend([
         (
             "eaten",

@@ -62,6 +62,20 @@ pub struct Grid {
     /// the method's.
     #[serde(default)]
     pub variants: BTreeMap<String, BTreeMap<String, toml::Value>>,
+    /// People (`pbrl people sample`): a folder, whose every `*.json` world config is one,
+    /// or a list of such files. Every run is made for every person (`--world FILE`), the
+    /// person's file name ending the method's name. A relative path is from where `pbrl
+    /// exp` runs, as paths in `[set]`.
+    #[serde(default)]
+    pub people: Option<People>,
+}
+
+/// The grid's `people`: a folder or a list of files.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+pub enum People {
+    Folder(PathBuf),
+    Files(Vec<PathBuf>),
 }
 
 #[derive(Debug, Deserialize)]
@@ -166,6 +180,9 @@ impl Grid {
             if ["algo", "reward", "seed", "steps", "out", "run", "fresh"].contains(&key.as_str()) {
                 bail!("`{key}` is set by the grid itself, not in [set], [grid] or [variants]");
             }
+            if self.people.is_some() && ["world", "profile"].contains(&key.as_str()) {
+                bail!("`{key}` is set by `people`, which gives each run its person's world");
+            }
         }
         for (name, flags) in &self.variants {
             if let Some(key) = flags.keys().find(|k| self.grid.contains_key(*k)) {
@@ -212,6 +229,15 @@ impl Grid {
             }
             combos = next;
         }
+        // Every person of `people` (none: the runs' own world).
+        let people: Vec<Option<(String, String)>> = match &self.people {
+            None => vec![None],
+            Some(People::Folder(dir)) => people_files(dir)?.into_iter().map(Some).collect(),
+            Some(People::Files(files)) => files
+                .iter()
+                .map(|f| person_file(f).map(Some))
+                .collect::<Result<_>>()?,
+        };
         let mut cells = Vec::new();
         for algo in &self.algos {
             let steps = match &self.steps {
@@ -221,14 +247,21 @@ impl Grid {
                     .with_context(|| format!("[steps] has no entry for algorithm {algo}"))?,
             };
             for reward in &self.rewards {
-                for combo in &combos {
-                    for (variant, flags) in &variants {
+                for (combo, (variant, flags), person) in combos
+                    .iter()
+                    .flat_map(|c| variants.iter().map(move |v| (c, v)))
+                    .flat_map(|(c, v)| people.iter().map(move |p| (c, v, p)))
+                {
+                    {
                         let mut method = format!("{algo}-{reward}");
                         for (k, v) in combo {
                             method.push_str(&format!("-{k}={}", value_text(v)?));
                         }
                         if let Some(variant) = variant {
                             method.push_str(&format!("-{variant}"));
+                        }
+                        if let Some((name, _)) = person {
+                            method.push_str(&format!("-{name}"));
                         }
                         if method.contains(['/', '\\']) || method.contains("..") {
                             bail!(
@@ -247,6 +280,9 @@ impl Grid {
                             }
                             for (k, v) in combo {
                                 args.extend(flag(k, v)?);
+                            }
+                            if let Some((_, path)) = person {
+                                args.push(format!("--world={path}"));
                             }
                             cells.push(Cell {
                                 name: format!("{method}-s{seed}"),
@@ -289,6 +325,39 @@ fn check_flags(cells: &[Cell]) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The people of a folder: (file stem, path) of every `*.json` in it, by name.
+fn people_files(dir: &Path) -> Result<Vec<(String, String)>> {
+    let entries = std::fs::read_dir(dir)
+        .with_context(|| format!("people = {}: not a folder", dir.display()))?;
+    let mut people = Vec::new();
+    for e in entries {
+        let path = e?.path();
+        if path.extension().is_some_and(|x| x == "json") {
+            people.push(person_file(&path)?);
+        }
+    }
+    if people.is_empty() {
+        bail!("people = {}: holds no *.json world config", dir.display());
+    }
+    people.sort();
+    Ok(people)
+}
+
+/// (file stem, path) of one person's world config, which must exist.
+fn person_file(path: &Path) -> Result<(String, String)> {
+    if !path.is_file() {
+        bail!("people: {} is not a file", path.display());
+    }
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .with_context(|| format!("people: {} is not a UTF-8 name", path.display()))?;
+    let text = path
+        .to_str()
+        .with_context(|| format!("people: {} is not a UTF-8 path", path.display()))?;
+    Ok((stem.to_string(), text.to_string()))
 }
 
 /// Parse `i/n`.
@@ -624,6 +693,57 @@ reward-features = false
             "name = \"t\"\nalgos = [\"sac\"]\nrewards = [\"true\"]\nsteps = 100\n{extra}"
         ))?;
         g.cells()
+    }
+
+    #[test]
+    fn a_grid_of_people_makes_every_run_for_every_person() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["b", "a"] {
+            std::fs::write(dir.path().join(format!("{name}.json")), "{}").unwrap();
+        }
+        std::fs::write(dir.path().join("people.csv"), "not a person").unwrap();
+        let d = dir.path().display().to_string();
+        let cells = grid(&format!(
+            "seeds = [1, 2]\npeople = {d:?}\n[variants.x]\nrho = 1\n[variants.y]\nrho = 2"
+        ))
+        .unwrap();
+        let names: Vec<&str> = cells.iter().map(|c| c.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "sac-true-x-a-s1",
+                "sac-true-x-a-s2",
+                "sac-true-x-b-s1",
+                "sac-true-x-b-s2",
+                "sac-true-y-a-s1",
+                "sac-true-y-a-s2",
+                "sac-true-y-b-s1",
+                "sac-true-y-b-s2"
+            ]
+        );
+        let a = format!("--world={}", dir.path().join("a.json").display());
+        assert!(cells[0].args.contains(&a), "{:?}", cells[0].args);
+        check_flags(&cells).unwrap();
+        // A list of files.
+        let b = dir.path().join("b.json").display().to_string();
+        let cells = grid(&format!("seeds = [1]\npeople = [{b:?}]")).unwrap();
+        assert_eq!(cells.len(), 1);
+        assert_eq!(cells[0].name, "sac-true-b-s1");
+        // Mistakes, named.
+        let e = grid("seeds = [1]\npeople = [\"no/such.json\"]").unwrap_err();
+        assert!(e.to_string().contains("no/such.json is not a file"), "{e}");
+        let empty = tempfile::tempdir().unwrap();
+        let e = grid(&format!(
+            "seeds = [1]\npeople = {:?}",
+            empty.path().display().to_string()
+        ))
+        .unwrap_err();
+        assert!(e.to_string().contains("holds no *.json"), "{e}");
+        let e = grid(&format!(
+            "seeds = [1]\npeople = {d:?}\n[set]\nworld = \"w.json\""
+        ))
+        .unwrap_err();
+        assert!(e.to_string().contains("`world` is set by `people`"), "{e}");
     }
 
     #[test]

@@ -4,6 +4,7 @@ mod bench;
 mod eval;
 mod exp;
 mod export;
+mod people;
 mod plot;
 mod train;
 mod watch;
@@ -51,6 +52,10 @@ enum Command {
     /// A run's policy as an ONNX model for a robot stack, with its card (JSON):
     /// `pbrl export RUN --onnx FILE`.
     Export(export::ExportArgs),
+    /// Simulated people: `pbrl people sample --n N --seed S --out DIR` writes one world
+    /// config per person of the population (`docs/people.md`).
+    #[command(subcommand)]
+    People(people::PeopleCommand),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -216,6 +221,7 @@ fn main() -> Result<()> {
         Command::Eval(a) => return eval::eval(a),
         Command::Watch(a) => return watch::watch(a),
         Command::Export(a) => return export::export(a),
+        Command::People(c) => return people::run(c),
         Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
         Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),
         _ => {}
@@ -237,7 +243,8 @@ fn main() -> Result<()> {
             | Command::Labels(_)
             | Command::Eval(_)
             | Command::Watch(_)
-            | Command::Export(_) => {
+            | Command::Export(_)
+            | Command::People(_) => {
                 unreachable!("handled above")
             }
         }

@@ -391,6 +391,37 @@ fn world_json(task: Task, world: &pbrl_actor::WorldConfig) -> Result<serde_json:
     })
 }
 
+/// A run folder's stored feeding world, read through this build's `WorldConfig` and
+/// written back when that adds fields (at their defaults, which keep the world as it was),
+/// so that a run begun by an older build resumes (the learner compares configs field by
+/// field). Nothing else in `config.json` changes.
+fn upgrade_stored_world(out: &std::path::Path) -> Result<()> {
+    let path = out.join("config.json");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(());
+    };
+    let Ok(mut stored) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return Ok(()); // the learner names what is wrong with it
+    };
+    let Some(world) = stored.pointer_mut("/world/config") else {
+        return Ok(());
+    };
+    let Ok(parsed) = serde_json::from_value::<pbrl_actor::WorldConfig>(world.clone()) else {
+        return Ok(());
+    };
+    let upgraded = serde_json::to_value(parsed)?;
+    if *world == upgraded {
+        return Ok(());
+    }
+    *world = upgraded;
+    let tmp = out.join("config.json.tmp");
+    std::fs::write(&tmp, serde_json::to_string_pretty(&stored)?)
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, &path).with_context(|| format!("replacing {}", path.display()))?;
+    tracing::info!(path = %path.display(), "the stored world gained this build's new fields, at their defaults");
+    Ok(())
+}
+
 /// `pbrl actor`: one actor, joining a Zenoh network.
 #[derive(Args, Debug)]
 pub struct ActorArgs {
@@ -508,6 +539,9 @@ impl TrainArgs {
             episode_steps(self.learn.task, &world),
             world_json(self.learn.task, &world)?,
         )?;
+        if let Some(out) = &cfg.out {
+            upgrade_stored_world(out)?;
+        }
         // NOTE: a person at the page is asked just in time; scripted teachers as before.
         if self.teacher.kind == Who::Human && !self.external_teacher {
             config::apply_preset(&mut cfg, &config::person_preset(), &self.learn.explicit)?;

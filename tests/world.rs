@@ -479,3 +479,105 @@ fn bad_configs_are_refused_with_the_field_named() {
     let e = FeedingWorld::new(cfg).err().unwrap();
     assert!(e.to_string().contains("food_radius = -0.005"), "{e}");
 }
+
+/// The taste terms of a person (`Taste`) on the scripted feeder's episode, which comes in
+/// from in front of the face: what they add to r_H, step by step.
+fn taste_cost(taste: pbrl_actor::config::Taste) -> (Trajectory, Vec<f32>) {
+    let plain = WorldConfig::fixed();
+    let mut with = plain.clone();
+    with.profile.taste = taste;
+    let run = |cfg: WorldConfig| {
+        let mut world = FeedingWorld::new(cfg).unwrap();
+        run_episode(
+            &mut world,
+            &mut Controller::new(ControllerKind::Scripted),
+            3,
+        )
+        .unwrap()
+    };
+    let (a, b) = (run(plain), run(with));
+    // The taste changes what the person feels, not what happens.
+    assert_eq!(a.obs, b.obs);
+    let diff = a.rewards.iter().zip(&b.rewards);
+    let added = diff
+        .map(|(a, b)| {
+            assert_eq!(a.terms, b.terms);
+            assert_eq!(a.robot, b.robot);
+            assert!((b.truth - b.robot - b.human).abs() < 1e-4);
+            b.human - a.human
+        })
+        .collect();
+    (b, added)
+}
+
+#[test]
+fn a_taste_for_where_the_spoon_comes_from_costs_only_near_the_mouth() {
+    use pbrl_actor::config::Taste;
+    let front = Taste {
+        approach_weight: 2.0,
+        ..Taste::default()
+    };
+    let side = Taste {
+        approach: [1.0, 0.0, 0.0],
+        ..front
+    };
+    let (t, from_front) = taste_cost(front);
+    let (_, from_side) = taste_cost(side);
+    assert!(t.outcome.success, "{:?}", t.outcome);
+    let near: Vec<bool> = t
+        .rewards
+        .iter()
+        .map(|r| (0.04..0.15).contains(&-r.task))
+        .collect();
+    assert!(near.iter().filter(|n| **n).count() > 5);
+    for ((f, s), near) in from_front.iter().zip(&from_side).zip(&near) {
+        // -(1 - cos) in [-2, 0], times the weight; nothing far from the mouth.
+        assert!(*f <= 1e-6 && *s <= 1e-6 && *f >= -4.0 - 1e-4 && *s >= -4.0 - 1e-4);
+        if !near {
+            assert_eq!((*f, *s), (0.0, 0.0));
+        }
+    }
+    let (sf, ss): (f32, f32) = (from_front.iter().sum(), from_side.iter().sum());
+    // The feeder comes in from the front: the person who wants that is nearly content,
+    // the one who wants the spoon from the side is not.
+    assert!(ss < 3.0 * sf - 5.0, "front {sf}, side {ss}");
+    let off = Taste {
+        approach_weight: 0.0,
+        ..side
+    };
+    assert!(taste_cost(off).1.iter().all(|d| *d == 0.0));
+}
+
+#[test]
+fn a_taste_for_fewer_bites_costs_each_new_bite() {
+    use pbrl_actor::config::Taste;
+    let (t, added) = taste_cost(Taste {
+        bite_weight: 5.0,
+        ..Taste::default()
+    });
+    let ate: Vec<bool> = t.rewards.iter().map(|r| r.terms[1] > 0.0).collect();
+    let bites = (0..ate.len())
+        .filter(|&i| ate[i] && (i == 0 || !ate[i - 1]))
+        .count();
+    assert!(bites >= 1);
+    let cost: f32 = added.iter().sum();
+    assert!(
+        (cost + 5.0 * bites as f32).abs() < 1e-3,
+        "{cost} for {bites} bites"
+    );
+    for (i, d) in added.iter().enumerate() {
+        let new_bite = ate[i] && (i == 0 || !ate[i - 1]);
+        assert_eq!(*d != 0.0, new_bite, "step {i}");
+    }
+}
+
+#[test]
+fn a_taste_without_a_direction_is_refused_by_name() {
+    let mut cfg = WorldConfig::default();
+    cfg.profile.taste.approach = [0.0; 3];
+    cfg.profile.taste.approach_weight = 1.0;
+    let e = cfg.validate().unwrap_err();
+    assert_eq!(e.field, "profile.taste.approach");
+    let e = WorldConfig::from_json(r#"{"profile": {"name": "x", "weights": {"distance": 0.5, "eaten": 0.5, "velocity": 0.25, "force": 0.3, "high_force": 0.1, "food_hit": 2.5, "food_velocity": 10.0}, "body": "large", "impairment": "none", "high_force_threshold": 10, "taste": {"bites": 1}}}"#).unwrap_err();
+    assert!(e.reason.contains("bites"), "{e}");
+}

@@ -67,7 +67,58 @@ pub enum Impairment {
     Tremor,
 }
 
-/// A person: preference weights, body, impairment and comfort threshold.
+/// A person's taste beyond the seven terms: what they mind that no comfort feature names
+/// (the learner sees neither these terms nor their weights; only the labels carry them).
+/// Each adds to r_H, so to the ground truth every scripted teacher judges by. All zero (the
+/// default): no such taste.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Taste {
+    /// Where the spoon should come from: a direction in the head frame, from the mouth
+    /// towards where the person wants to see the spoon arrive (`[0, -1, 0]`: straight in
+    /// front of the face; `[0, -0.7, -0.7]`: from below). Need not be unit length.
+    pub approach: [f32; 3],
+    /// Weight of C_ap = -(1 - cos of the angle between spoon - mouth and `approach`), at
+    /// every step the spoon is on its way in: nearer the mouth than `approach_radius`, and
+    /// not yet as near as `approach_inner`, where the direction stops meaning anything
+    /// (0: no such taste).
+    pub approach_weight: f32,
+    /// How near the mouth (m) the approach starts to count.
+    pub approach_radius: f32,
+    /// How near the mouth (m) it stops counting (the spoon has arrived).
+    pub approach_inner: f32,
+    /// Weight of C_bite = -1 at every step in which food reaches the mouth after a step in
+    /// which none did: a person who wants fewer, bigger bites (0: no such taste).
+    pub bite_weight: f32,
+}
+
+impl Default for Taste {
+    fn default() -> Self {
+        Self {
+            approach: [0.0, -1.0, 0.0],
+            approach_weight: 0.0,
+            approach_radius: 0.15,
+            approach_inner: 0.04,
+            bite_weight: 0.0,
+        }
+    }
+}
+
+impl Taste {
+    /// The kinds of taste this person has, by name (`approach`, `bites`), none for most.
+    pub fn kinds(&self) -> Vec<&'static str> {
+        let mut k = Vec::new();
+        if self.approach_weight != 0.0 {
+            k.push("approach");
+        }
+        if self.bite_weight != 0.0 {
+            k.push("bites");
+        }
+        k
+    }
+}
+
+/// A person: preference weights, body, impairment, comfort threshold and taste.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Profile {
@@ -81,6 +132,9 @@ pub struct Profile {
     pub impairment: Impairment,
     /// Spoon force (N) from which C_hf counts.
     pub high_force_threshold: f32,
+    /// Taste no comfort feature names (none by default).
+    #[serde(default)]
+    pub taste: Taste,
 }
 
 impl Profile {
@@ -100,6 +154,7 @@ impl Profile {
             body: BodySize::Random,
             impairment: Impairment::Random,
             high_force_threshold: 10.0,
+            taste: Taste::default(),
         }
     }
 
@@ -539,6 +594,20 @@ impl WorldConfig {
             "profile.high_force_threshold",
             self.profile.high_force_threshold,
         )?;
+        let taste = &self.profile.taste;
+        finite("profile.taste.approach", &taste.approach)?;
+        finite("profile.taste.approach_weight", &[taste.approach_weight])?;
+        finite("profile.taste.bite_weight", &[taste.bite_weight])?;
+        non_negative("profile.taste.approach_radius", taste.approach_radius)?;
+        non_negative("profile.taste.approach_inner", taste.approach_inner)?;
+        let norm = taste.approach.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if taste.approach_weight != 0.0 && norm < 1e-6 {
+            return Err(ConfigError::invalid(
+                "profile.taste.approach",
+                format!("{:?}", taste.approach),
+                "must not be zero when approach_weight is set: it is a direction",
+            ));
+        }
         Ok(())
     }
 }

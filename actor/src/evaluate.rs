@@ -40,8 +40,11 @@ pub struct EpisodeStats {
     pub return_task: f64,
     /// Each preference term's part of r_H over the episode: w_i times the sum of term i
     /// (the world's weights of the person evaluated for), in [`TERM_NAMES`] order; they add
-    /// up to `return_human`.
+    /// up to `return_human` with `taste`.
     pub terms: [f64; 7],
+    /// The part of r_H from the person's taste that no comfort feature names (where the
+    /// spoon comes from, bites; `Taste`): r_H less the seven weighted terms. 0 for most.
+    pub taste: f64,
     /// Food particles eaten, spilled and that touched the person, of `food`.
     pub eaten: u32,
     pub spilled: u32,
@@ -66,9 +69,19 @@ impl EpisodeStats {
             v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt()
         });
         let mut closest = d0;
+        let mut taste = 0f64;
         for r in &t.rewards {
+            let (mut named, mut size) = (0f64, 1f64);
             for (i, term) in r.terms.iter().enumerate() {
-                terms[i] += w[i] as f64 * *term as f64;
+                let part = w[i] as f64 * *term as f64;
+                terms[i] += part;
+                named += part;
+                size += part.abs();
+            }
+            // NOTE: r_H is kept in f32; what is left within its rounding is not taste.
+            let left = r.human as f64 - named;
+            if left.abs() > 4.0 * f32::EPSILON as f64 * (size + r.human.abs() as f64) {
+                taste += left;
             }
             // NOTE: C_v = -(EE speed), C_f = -(force on the person), unweighted.
             top_speed = top_speed.max(r.terms[2].abs() as f64);
@@ -84,6 +97,7 @@ impl EpisodeStats {
             return_human: o.return_human as f64,
             return_task: o.return_task as f64,
             terms,
+            taste,
             eaten: o.eaten,
             spilled: o.spilled,
             on_person: o.hits,

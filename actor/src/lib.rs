@@ -3,6 +3,7 @@
 
 pub mod config;
 pub mod kinematics;
+pub mod people;
 pub mod point;
 pub mod policy;
 pub mod runner;

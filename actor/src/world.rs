@@ -20,7 +20,7 @@ use rapier3d::parry::query;
 use rapier3d::parry::shape::{Ball, Capsule, Cuboid};
 use rapier3d::prelude::*;
 
-use crate::config::{BasePlacement, BodySize, ConfigError, Impairment, WorldConfig};
+use crate::config::{BasePlacement, BodySize, ConfigError, Impairment, Taste, WorldConfig};
 use crate::kinematics::{random_rest, Arm, ArmFrames, JOINT_LIMITS, NEUTRAL, NJ};
 use crate::scene::{self, Owner, Person, Shape};
 
@@ -146,6 +146,8 @@ struct Episode {
     head_obstacle: usize,
     steps: u32,
     counts: FoodCounts,
+    /// Food reached the mouth in the step before (a bite goes on).
+    ate_last_step: bool,
 }
 
 /// The feeding world. `reset` draws a new episode from a seed; `step` advances it.
@@ -520,6 +522,7 @@ impl FeedingWorld {
             head_obstacle,
             steps: 0,
             counts: FoodCounts::default(),
+            ate_last_step: false,
         });
         // Let the food settle on the still spoon; hits during settling do not count.
         let settle = self.cfg.settle_substeps;
@@ -865,7 +868,9 @@ impl FeedingWorld {
             -eaten_speed,
         ];
         let w = cfg.profile.weights.as_array();
-        let human: f64 = terms.iter().zip(w).map(|(t, w)| t * w as f64).sum();
+        let taste = taste_reward(&cfg.profile.taste, ep, &spoon_pose, &mouth, d, counts.eaten);
+        ep.ate_last_step = counts.eaten > 0;
+        let human: f64 = terms.iter().zip(w).map(|(t, w)| t * w as f64).sum::<f64>() + taste;
         let rewards = StepRewards {
             robot: robot as f32,
             terms: terms.map(|t| t as f32),
@@ -1018,6 +1023,31 @@ struct ArmContact {
 
 fn head_pose(person: &Person, angles: &[f64; 3]) -> Isometry3<f64> {
     person.head_rest * UnitQuaternion::from_euler_angles(angles[0], angles[1], angles[2])
+}
+
+/// The weighted taste terms of a step (`Taste`): C_ap on the spoon's way in, C_bite when
+/// a new bite starts.
+fn taste_reward(
+    taste: &Taste,
+    ep: &Episode,
+    spoon: &Pose,
+    mouth: &Point3<f64>,
+    d: f64,
+    eaten: u32,
+) -> f64 {
+    let mut r = 0.0;
+    let on_the_way = d < taste.approach_radius as f64 && d >= taste.approach_inner as f64;
+    if taste.approach_weight != 0.0 && on_the_way && d > 1e-9 {
+        let head = head_pose(&ep.person, &ep.head.angles);
+        let from_mouth = head.rotation.inverse() * (to_point(spoon.translation) - mouth);
+        let want = Vector3::from(taste.approach.map(f64::from));
+        let cos = from_mouth.dot(&want) / (from_mouth.norm() * want.norm());
+        r -= taste.approach_weight as f64 * (1.0 - cos);
+    }
+    if taste.bite_weight != 0.0 && eaten > 0 && !ep.ate_last_step {
+        r -= taste.bite_weight as f64;
+    }
+    r
 }
 
 fn mouth_of(ep: &Episode) -> Point3<f64> {

@@ -15,6 +15,10 @@ fn one() -> f64 {
     1.0
 }
 
+fn guard_gain() -> f64 {
+    9.0
+}
+
 /// Preference learning (`shared/method.md` sections 1-5). The defaults are PEBBLE's; the
 /// PPO backbone's (PrefPPO) apply where the user did not set a value ([`ppo_preset`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
@@ -34,6 +38,17 @@ pub struct PrefConfig {
     /// 0.66 where 1e-6, lambda_0 / e at 1M, gives 0.23; `results/pref/README.md`).
     #[arg(long, default_value_t = 3e-7)]
     pub rho: f64,
+    /// Decoupled: the task guard (`docs/people.md`): while the success of
+    /// the newest 100 training episodes is below this share of the best the run reached,
+    /// lambda_t is raised (0: off), so the task is never traded away for the taste.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub task_guard: f64,
+    /// Decoupled: the task guard's gain: lambda_t is multiplied by up to 1 + this, when no
+    /// training episode feeds.
+    #[arg(long, default_value_t = 9.0)]
+    #[serde(default = "guard_gain")]
+    pub task_guard_gain: f64,
     /// How queries are chosen among the candidates (the first session is always uniform).
     #[arg(long, value_enum, default_value = "disagreement")]
     pub sampler: Sampler,

@@ -73,6 +73,60 @@ pub fn lambda(schedule: Schedule, lambda0: f64, rho: f64, t: u64, total: u64) ->
     }
 }
 
+/// The task guard (`--task-guard`): the task is never traded away for the learnt taste.
+/// It keeps the success of the newest [`TaskGuard::WINDOW`] training episodes (food reached
+/// the mouth: the task's own measure, not the person's taste) and the best such rate the
+/// run has reached; while the rate is below `ratio` times the best, lambda_t is multiplied
+/// by `1 + gain * shortfall` (shortfall in [0, 1], from 0 at `ratio * best` to 1 at no
+/// success), so the task's weight grows and the learnt reward's share (r_hat / lambda_t
+/// under `--sac-lambda-scale`) shrinks until the robot feeds as it did.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TaskGuard {
+    /// Success of the newest training episodes, oldest first.
+    recent: std::collections::VecDeque<bool>,
+    /// The best success rate over a full window so far.
+    best: f64,
+}
+
+impl TaskGuard {
+    /// Training episodes the rate is taken over.
+    pub const WINDOW: usize = 100;
+    /// Below this best rate the guard does not act (too few successes to tell a fall).
+    pub const MIN_BEST: f64 = 0.1;
+
+    /// A training episode ended.
+    pub fn add(&mut self, success: bool) {
+        if self.recent.len() == Self::WINDOW {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(success);
+        if self.recent.len() == Self::WINDOW {
+            self.best = self.best.max(self.rate());
+        }
+    }
+
+    /// Success rate of the newest window (0 before any episode).
+    pub fn rate(&self) -> f64 {
+        let n = self.recent.len().max(1) as f64;
+        self.recent.iter().filter(|s| **s).count() as f64 / n
+    }
+
+    /// The best full-window rate so far.
+    pub fn best(&self) -> f64 {
+        self.best
+    }
+
+    /// lambda_t's multiplier for `ratio` (0: off) and `gain`.
+    pub fn multiplier(&self, ratio: f64, gain: f64) -> f64 {
+        if ratio <= 0.0 || self.best < Self::MIN_BEST || self.recent.len() < Self::WINDOW {
+            return 1.0;
+        }
+        let floor = ratio * self.best;
+        let shortfall = ((floor - self.rate()) / floor).clamp(0.0, 1.0);
+        1.0 + gain * shortfall
+    }
+}
+
 /// The reward the policy trains on now.
 pub struct TrainReward {
     pub source: RewardSource,
@@ -91,6 +145,11 @@ pub struct TrainReward {
     pub pool: Pool,
     /// States of the rollout being collected, for the pool once it is trained (PPO).
     rollout_states: Vec<f32>,
+    /// The task guard's episodes (decoupled only).
+    pub guard: TaskGuard,
+    /// `--task-guard` and `--task-guard-gain` (a ratio of 0: off).
+    pub guard_ratio: f64,
+    pub guard_gain: f64,
 }
 
 /// When a trajectory's states join the entropy bonus's pool: the states the backbone
@@ -127,12 +186,18 @@ impl TrainReward {
             lambda_scale: false,
             pool,
             rollout_states: Vec::new(),
+            guard: TaskGuard::default(),
+            guard_ratio: pref.task_guard,
+            guard_gain: pref.task_guard_gain,
         }
     }
 
     /// A trajectory the backbone is about to train on: while pretraining, its states join
     /// the entropy bonus's pool (when, [`Pool`] says).
     pub fn observe(&mut self, t: &Trajectory) {
+        if self.source == RewardSource::Decoupled {
+            self.guard.add(t.outcome.success);
+        }
         if self.model.is_some() {
             return;
         }
@@ -163,11 +228,17 @@ impl TrainReward {
         self.source.learnt() && self.model.is_none()
     }
 
-    /// The task reward's weight at `t` env steps (0 unless decoupled).
+    /// The task reward's weight at `t` env steps (0 unless decoupled): the schedule's,
+    /// times the task guard's multiplier once the learnt reward has taken over.
     pub fn lambda(&self, t: u64) -> f64 {
         match self.source {
             RewardSource::Decoupled => {
-                lambda(self.schedule, self.lambda0, self.rho, t, self.total_steps)
+                let guard = if self.model.is_some() {
+                    self.guard.multiplier(self.guard_ratio, self.guard_gain)
+                } else {
+                    1.0
+                };
+                lambda(self.schedule, self.lambda0, self.rho, t, self.total_steps) * guard
             }
             _ => 0.0,
         }
@@ -320,6 +391,9 @@ mod tests {
             lambda_scale: false,
             pool: Pool::AtOnce,
             rollout_states: Vec::new(),
+            guard: TaskGuard::default(),
+            guard_ratio: 0.0,
+            guard_gain: 0.0,
         };
         let rows = |r: &mut TrainReward, t| -> Vec<f32> {
             r.minibatch(&b, t)
@@ -355,5 +429,71 @@ mod tests {
             close(&late, &[0.5 * task[0] + r_hat[0], 0.5 * task[1] + r_hat[1]]),
             "{late:?}"
         );
+    }
+
+    #[test]
+    fn the_task_guard_raises_lambda_only_while_success_is_below_its_best() {
+        let mut g = TaskGuard::default();
+        // Not a full window yet: no best, no action.
+        for _ in 0..99 {
+            g.add(true);
+        }
+        assert_eq!(g.multiplier(0.9, 9.0), 1.0);
+        g.add(true);
+        assert_eq!(g.best(), 1.0);
+        assert_eq!(g.multiplier(0.9, 9.0), 1.0, "at its best");
+        // 60 failures: rate 0.4 against a floor of 0.9: shortfall (0.9 - 0.4) / 0.9.
+        for _ in 0..60 {
+            g.add(false);
+        }
+        assert!((g.rate() - 0.4).abs() < 1e-12);
+        assert_eq!(g.best(), 1.0, "the best stays");
+        let m = g.multiplier(0.9, 9.0);
+        assert!((m - (1.0 + 9.0 * 0.5 / 0.9)).abs() < 1e-9, "{m}");
+        assert_eq!(g.multiplier(0.0, 9.0), 1.0, "off");
+        // Back to feeding: the multiplier goes back to 1.
+        for _ in 0..100 {
+            g.add(true);
+        }
+        assert_eq!(g.multiplier(0.9, 9.0), 1.0);
+        // A run that never fed: the guard has nothing to keep.
+        let mut never = TaskGuard::default();
+        for i in 0..200 {
+            never.add(i % 20 == 0);
+        }
+        assert_eq!(never.multiplier(0.9, 9.0), 1.0);
+    }
+
+    #[test]
+    fn the_guard_scales_lambda_once_the_learnt_reward_took_over() {
+        use crate::pref::reward_model::RewardModelConfig;
+        let pref = PrefConfig {
+            task_guard: 0.9,
+            task_guard_gain: 4.0,
+            lambda_schedule: Schedule::Linear,
+            lambda0: 10.0,
+            ..PrefConfig::default()
+        };
+        let mut r = TrainReward::new(RewardSource::Decoupled, &pref, 100, 2, Pool::AtOnce);
+        let ep = |success| {
+            let mut t = Trajectory::default();
+            t.outcome.success = success;
+            t
+        };
+        for _ in 0..100 {
+            r.observe(&ep(true));
+        }
+        for _ in 0..100 {
+            r.observe(&ep(false));
+        }
+        // Pretraining: the schedule's lambda alone.
+        assert_eq!(r.lambda(50), 5.0);
+        let model = RewardModel::new(RewardModelConfig::plain(), 2, 1).unwrap();
+        r.install(Arc::new(model));
+        // No success against a best of 1: shortfall 1, lambda 5 * (1 + 4).
+        assert_eq!(r.lambda(50), 25.0);
+        // Not for the other rewards.
+        let task = TrainReward::new(RewardSource::Task, &pref, 100, 2, Pool::AtOnce);
+        assert_eq!(task.lambda(50), 0.0);
     }
 }

@@ -13,7 +13,7 @@ use pbrl_common::wire::{self, EvalRequest};
 use serde::{Deserialize, Serialize};
 
 use crate::pref::feedback::{Feedback, FeedbackState};
-use crate::pref::reward::TrainReward;
+use crate::pref::reward::{TaskGuard, TrainReward};
 use crate::run::backbone::{Backbone, BackboneState, LastLosses, Publication};
 use crate::run::config::{check_resume, LearnerConfig};
 use crate::run::curve::{Curve, CurveRow, Window};
@@ -57,6 +57,21 @@ pub struct Saved {
     /// and apart from the buffer, so that a checkpoint of an older build, which ends
     /// before them, still decodes: [`decode_saved`]).
     pub buffer_features: Vec<Vec<f32>>,
+    /// The task guard's episodes (last, so that an older build's checkpoint, which ends
+    /// before it, still decodes with an empty guard).
+    pub guard: TaskGuard,
+}
+
+/// A checkpoint's state as the builds before the task guard wrote it.
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize))]
+struct SavedBeforeGuard {
+    config: String,
+    progress: Progress,
+    pending: Vec<(CurveRow, EvalRequest)>,
+    backbone: BackboneState,
+    feedback: Option<FeedbackState>,
+    buffer_features: Vec<Vec<f32>>,
 }
 
 /// A checkpoint's state as the builds before the comfort features wrote it.
@@ -76,18 +91,30 @@ pub fn decode_saved(bytes: &[u8]) -> Result<Saved> {
     let config = bincode::config::standard();
     let mut saved = match bincode::serde::decode_from_slice::<Saved, _>(bytes, config) {
         Ok((s, _)) => s,
-        Err(e) => {
-            let (old, _): (SavedBeforeFeatures, usize) =
-                bincode::serde::decode_from_slice(bytes, config).map_err(|_| e)?;
-            Saved {
+        Err(e) => match bincode::serde::decode_from_slice::<SavedBeforeGuard, _>(bytes, config) {
+            Ok((old, _)) => Saved {
                 config: old.config,
                 progress: old.progress,
                 pending: old.pending,
                 backbone: old.backbone,
                 feedback: old.feedback,
-                buffer_features: Vec::new(),
+                buffer_features: old.buffer_features,
+                guard: TaskGuard::default(),
+            },
+            Err(_) => {
+                let (old, _): (SavedBeforeFeatures, usize) =
+                    bincode::serde::decode_from_slice(bytes, config).map_err(|_| e)?;
+                Saved {
+                    config: old.config,
+                    progress: old.progress,
+                    pending: old.pending,
+                    backbone: old.backbone,
+                    feedback: old.feedback,
+                    buffer_features: Vec::new(),
+                    guard: TaskGuard::default(),
+                }
             }
-        }
+        },
     };
     let features = std::mem::take(&mut saved.buffer_features);
     if let Some(f) = &mut saved.feedback {
@@ -264,6 +291,7 @@ fn saved(cfg: &LearnerConfig, of: &Of<'_>, progress: &Progress) -> Result<Vec<u8
             })
             .transpose()?,
         buffer_features: of.feedback.map(|f| f.buffer_features()).unwrap_or_default(),
+        guard: of.reward.guard.clone(),
     };
     Ok(bincode::serde::encode_to_vec(
         &saved,
@@ -458,8 +486,31 @@ mod tests {
             backbone: backbone(),
             feedback: Some(feedback.clone()),
             buffer_features: buffer.features(),
+            guard: {
+                let mut g = TaskGuard::default();
+                (0..150).for_each(|i| g.add(i % 3 == 0));
+                g
+            },
         };
         let back = decode_saved(&bincode::serde::encode_to_vec(&now, config).unwrap()).unwrap();
+        assert_eq!(back.guard, now.guard);
+        assert!(back.guard.best() > 0.3);
+        // The layout before the task guard: an empty guard, everything else kept.
+        let before_guard = SavedBeforeGuard {
+            config: "{}".into(),
+            progress: Progress::default(),
+            pending: Vec::new(),
+            backbone: backbone(),
+            feedback: Some(feedback.clone()),
+            buffer_features: buffer.features(),
+        };
+        let old =
+            decode_saved(&bincode::serde::encode_to_vec(&before_guard, config).unwrap()).unwrap();
+        assert_eq!(old.guard, TaskGuard::default());
+        assert_eq!(
+            old.feedback.unwrap().buffer.get(1).features,
+            candidate(4).features
+        );
         let b = &back.feedback.unwrap().buffer;
         assert_eq!(b.get(0).features, candidate(3).features);
         assert_eq!(b.get(1).features, candidate(4).features);

@@ -94,6 +94,7 @@ impl Learner {
         let mut feedback = open_feedback(&cfg, folder.as_ref())?;
         let (p, unwritten) = match resumed {
             Some(r) => {
+                reward.guard = r.saved.guard.clone();
                 if let (Some(f), Some(state)) = (feedback.as_mut(), &r.saved.feedback) {
                     f.restore(state)?;
                     checkpoint::load_networks(&r.dir, f.networks())?;
