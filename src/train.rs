@@ -180,12 +180,12 @@ fn parse_teacher(s: &str) -> Result<Who, String> {
     if s == "human" {
         return Ok(Who::Human);
     }
-    TeacherKind::ALL
+    TeacherKind::EVERY
         .into_iter()
         .find(|k| k.name() == s)
         .map(Who::Scripted)
         .ok_or_else(|| {
-            let names: Vec<&str> = TeacherKind::ALL.iter().map(|k| k.name()).collect();
+            let names: Vec<&str> = TeacherKind::EVERY.iter().map(|k| k.name()).collect();
             format!("{s:?} is not a teacher: {} or human", names.join(", "))
         })
 }
@@ -255,7 +255,9 @@ impl HumanArgs {
 #[derive(Args, Clone, Debug)]
 pub struct TeacherArgs {
     /// Who answers preference queries: a scripted teacher of paper Table I (oracle, noisy,
-    /// mistake, skip, equal, myopic) or people at a labelling page (human).
+    /// mistake, skip, equal, myopic), one that errs like a person (hurried: takes the
+    /// livelier of two attempts too close to tell apart) or people at a labelling page
+    /// (human).
     #[arg(long = "teacher", default_value = "oracle", value_parser = parse_teacher)]
     pub kind: Who,
     /// Lowest possible ground-truth return (the skip and equal thresholds are fractions of

@@ -1,6 +1,8 @@
 //! The six scripted teachers of B-Pref (paper Table I, `method.md` section 4): each judges a
 //! pair of trajectories from their per-step ground-truth rewards, in the order of B-Pref's
-//! `get_label`: skip, equal, myopic discount, Bradley-Terry choice, mistake.
+//! `get_label`: skip, equal, myopic discount, Bradley-Terry choice, mistake. A seventh,
+//! `hurried`, errs as people do rather than uniformly: where a pair's returns are too close
+//! for it to tell apart, it takes the attempt that moves more.
 //!
 //! R_avg, which scales the skip and equal thresholds, is the mean ground-truth return of
 //! the last `avg_window` trajectories the teacher was shown, so the teacher needs nothing
@@ -30,6 +32,11 @@ pub enum TeacherKind {
     Equal,
     /// Weighs late steps more (gamma_my = 0.99).
     Myopic,
+    /// Not of Table I: errs like a person, on what the pair shows. Two attempts whose
+    /// returns differ by less than a fifth of the larger (weber = 0.2) look alike to it,
+    /// and it then prefers the one that moves more (the larger mean |action|): drawn to
+    /// the livelier attempt, whatever the person's taste for speed.
+    Hurried,
 }
 
 impl TeacherKind {
@@ -43,6 +50,17 @@ impl TeacherKind {
         TeacherKind::Myopic,
     ];
 
+    /// Table I's six and the teachers that err like people.
+    pub const EVERY: [TeacherKind; 7] = [
+        TeacherKind::Oracle,
+        TeacherKind::Noisy,
+        TeacherKind::Mistake,
+        TeacherKind::Skip,
+        TeacherKind::Equal,
+        TeacherKind::Myopic,
+        TeacherKind::Hurried,
+    ];
+
     /// The name used in configs, on the command line and in answers (`oracle`, ...).
     pub fn name(self) -> &'static str {
         match self {
@@ -52,6 +70,7 @@ impl TeacherKind {
             TeacherKind::Skip => "skip",
             TeacherKind::Equal => "equal",
             TeacherKind::Myopic => "myopic",
+            TeacherKind::Hurried => "hurried",
         }
     }
 }
@@ -79,6 +98,11 @@ pub struct ScriptedConfig {
     pub avg_window: usize,
     /// Seeds the teacher's random draws.
     pub seed: u64,
+    /// A pair whose returns differ by less than this share of the larger magnitude looks
+    /// alike: the teacher takes the attempt that moves more (where the query shows the
+    /// actions; else Equal). 0: never (Table I's six).
+    #[serde(default)]
+    pub weber: f64,
 }
 
 impl ScriptedConfig {
@@ -94,6 +118,7 @@ impl ScriptedConfig {
             r_min: -350.0,
             avg_window: 100,
             seed,
+            weber: 0.0,
         };
         match kind {
             TeacherKind::Oracle => oracle,
@@ -112,6 +137,10 @@ impl ScriptedConfig {
             },
             TeacherKind::Myopic => ScriptedConfig {
                 gamma: 0.99,
+                ..oracle
+            },
+            TeacherKind::Hurried => ScriptedConfig {
+                weber: 0.2,
                 ..oracle
             },
         }
@@ -150,6 +179,11 @@ impl ScriptedConfig {
             self.r_min.is_finite(),
             "teacher r_min = {}: must be finite",
             self.r_min
+        );
+        ensure!(
+            self.weber.is_finite() && (0.0..1.0).contains(&self.weber),
+            "teacher weber = {}: must be in [0, 1)",
+            self.weber
         );
         ensure!(
             self.avg_window >= 1,
@@ -203,7 +237,7 @@ impl Scripted {
         self.remember(r1);
         // `remember` just pushed two returns and avg_window >= 1, so the window is not empty.
         let r_avg = self.r_avg().expect("the window holds this pair's returns");
-        self.judge_returns(first, second, r_avg, 1.0)
+        self.judge_returns(first, second, r_avg, 1.0, None)
     }
 
     /// Judge two segments with the session's R_avg, as the authors' code does: R_avg is
@@ -213,12 +247,14 @@ impl Scripted {
     /// segment returns with `(R_avg - r_min) * fraction * delta`, the skip threshold's
     /// floor is `r_min * fraction`. With whole trajectories (`fraction` 1) this is
     /// [`Scripted::answer`] with R_avg fixed for the session instead of the window.
+    /// `moves` is how much each attempt moves (its mean |action|), where the query shows it.
     pub fn answer_in_session(
         &mut self,
         first: &[f32],
         second: &[f32],
         r_avg: f64,
         fraction: f64,
+        moves: Option<[f64; 2]>,
     ) -> Preference {
         let (r0, r1) = (sum(first), sum(second));
         if first.is_empty()
@@ -232,7 +268,7 @@ impl Scripted {
         {
             return Preference::Skip;
         }
-        self.judge_returns(first, second, r_avg, fraction)
+        self.judge_returns(first, second, r_avg, fraction, moves)
     }
 
     fn judge_returns(
@@ -241,6 +277,7 @@ impl Scripted {
         second: &[f32],
         r_avg: f64,
         fraction: f64,
+        moves: Option<[f64; 2]>,
     ) -> Preference {
         let (r0, r1) = (sum(first), sum(second));
         let cfg = &self.cfg;
@@ -255,6 +292,14 @@ impl Scripted {
         // NOTE: Equal overrides the noisy choice and a mistake, so it draws nothing.
         if cfg.delta_equal > 0.0 && (r0 - r1).abs() < scale * cfg.delta_equal {
             return Preference::Equal;
+        }
+        // 2b. Hurried: too close to tell apart, so the livelier attempt (draws nothing).
+        if cfg.weber > 0.0 && (r0 - r1).abs() < cfg.weber * r0.abs().max(r1.abs()) {
+            return match moves {
+                Some([m0, m1]) if m1 > m0 => Preference::Second,
+                Some(_) => Preference::First,
+                None => Preference::Equal,
+            };
         }
         // 3. Myopic: step t of T weighted gamma^(T-1-t).
         let (d0, d1) = if cfg.gamma < 1.0 {
@@ -360,6 +405,7 @@ mod tests {
                 r_min: -350.0,
                 avg_window: 100,
                 seed: 3,
+                weber: 0.0,
             };
             assert_eq!(c, want);
             c.validate().unwrap();
@@ -588,36 +634,36 @@ mod tests {
         // and equal within 6.25.
         let mut skip = table(TeacherKind::Skip);
         assert_eq!(
-            skip.answer_in_session(&[-82.0], &[-85.0], -100.0, 0.25),
+            skip.answer_in_session(&[-82.0], &[-85.0], -100.0, 0.25, None),
             Preference::Skip
         );
         assert_eq!(
-            skip.answer_in_session(&[-81.0], &[-85.0], -100.0, 0.25),
+            skip.answer_in_session(&[-81.0], &[-85.0], -100.0, 0.25, None),
             Preference::First
         );
         let mut equal = table(TeacherKind::Equal);
         assert_eq!(
-            equal.answer_in_session(&[-50.0], &[-56.2], -100.0, 0.25),
+            equal.answer_in_session(&[-50.0], &[-56.2], -100.0, 0.25, None),
             Preference::Equal
         );
         assert_eq!(
-            equal.answer_in_session(&[-50.0], &[-56.3], -100.0, 0.25),
+            equal.answer_in_session(&[-50.0], &[-56.3], -100.0, 0.25, None),
             Preference::First
         );
         // Whole trajectories (fraction 1): the window's rule with R_avg fixed. The window
         // is not touched by a session's answers.
         assert_eq!(
-            equal.answer_in_session(&[-100.0], &[-124.0], -100.0, 1.0),
+            equal.answer_in_session(&[-100.0], &[-124.0], -100.0, 1.0, None),
             Preference::Equal
         );
         assert_eq!(equal.r_avg(), None);
         // Nothing to judge by: skipped.
         assert_eq!(
-            equal.answer_in_session(&[-1.0], &[-2.0], f64::NAN, 1.0),
+            equal.answer_in_session(&[-1.0], &[-2.0], f64::NAN, 1.0, None),
             Preference::Skip
         );
         assert_eq!(
-            equal.answer_in_session(&[-1.0], &[-2.0], -100.0, 0.0),
+            equal.answer_in_session(&[-1.0], &[-2.0], -100.0, 0.0, None),
             Preference::Skip
         );
     }
@@ -739,5 +785,55 @@ mod tests {
         }
         .validate()
         .unwrap();
+    }
+
+    #[test]
+    fn hurried_takes_the_livelier_of_two_close_attempts_and_the_better_of_two_far_ones() {
+        let c = ScriptedConfig::of(TeacherKind::Hurried, 1);
+        assert_eq!(c.weber, 0.2);
+        assert_eq!(
+            ScriptedConfig {
+                weber: 0.0,
+                ..c.clone()
+            },
+            ScriptedConfig {
+                kind: TeacherKind::Hurried,
+                ..ScriptedConfig::of(TeacherKind::Oracle, 1)
+            }
+        );
+        assert_eq!(TeacherKind::Hurried.name(), "hurried");
+        let mut t = teacher(c);
+        // -30 against -34: 4 < 0.2 * 34, too close. The second moves more: Second, though
+        // the first is better.
+        let (a, b) = ([-15.0f32, -15.0], [-17.0f32, -17.0]);
+        let lively = Some([0.1, 0.5]);
+        assert_eq!(t.answer_in_session(&a, &b, -100.0, 0.25, lively), Second);
+        assert_eq!(
+            t.answer_in_session(&a, &b, -100.0, 0.25, Some([0.5, 0.1])),
+            First
+        );
+        // Without the actions it cannot tell: Equal.
+        assert_eq!(t.answer_in_session(&a, &b, -100.0, 0.25, None), Equal);
+        // -30 against -50: far enough, the better one whatever moves more.
+        let far = [-25.0f32, -25.0];
+        assert_eq!(
+            t.answer_in_session(&a, &far, -100.0, 0.25, Some([0.1, 0.9])),
+            First
+        );
+        // The oracle is never drawn to the livelier one.
+        let mut oracle = table(TeacherKind::Oracle);
+        assert_eq!(
+            oracle.answer_in_session(&a, &b, -100.0, 0.25, lively),
+            First
+        );
+        // Out of range: refused by name.
+        let bad = ScriptedConfig {
+            weber: 1.5,
+            ..ScriptedConfig::of(TeacherKind::Hurried, 1)
+        };
+        assert!(Scripted::new(bad)
+            .unwrap_err()
+            .to_string()
+            .contains("weber = 1.5"));
     }
 }

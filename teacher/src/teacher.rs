@@ -67,10 +67,26 @@ pub fn judge_query(t: &mut Scripted, q: &Query) -> Preference {
     match q.r_avg {
         Some(r_avg) => {
             let steps = q.first.steps().max(1) as f64;
-            t.answer_in_session(a, b, r_avg as f64, a.len() as f64 / steps)
+            let moves = [&q.first, &q.second].map(movement);
+            let moves = match moves {
+                [Some(m0), Some(m1)] => Some([m0, m1]),
+                _ => None,
+            };
+            t.answer_in_session(a, b, r_avg as f64, a.len() as f64 / steps, moves)
         }
         None => t.answer(a, b),
     }
+}
+
+/// How much an attempt moves in its judged steps: the mean |action| (None without actions).
+pub fn movement(s: &pbrl_common::wire::Shown) -> Option<f64> {
+    let dim = s.act_dim as usize;
+    let range = s.segment();
+    let rows = s.actions.get(range.start * dim..range.end * dim)?;
+    if rows.is_empty() {
+        return None;
+    }
+    Some(rows.iter().map(|a| a.abs() as f64).sum::<f64>() / rows.len() as f64)
 }
 
 /// A teacher that judges each query at once with its judge, as teacher `id`.
