@@ -19,6 +19,10 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
     about = "Preference-based RL for personalised robot feeding"
 )]
 struct Cli {
+    /// Show pbrl's progress on the terminal (feedback sessions, checkpoints, ...), not only
+    /// the bar, the curve's rows and warnings; RUST_LOG sets the log fully.
+    #[arg(long, global = true)]
+    verbose: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -141,13 +145,13 @@ fn labels(cmd: LabelsCommand) -> Result<()> {
 }
 
 fn main() -> Result<()> {
-    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::layer::{Layer, SubscriberExt};
     use tracing_subscriber::util::SubscriberInitExt;
     // NOTE: before any thread starts (glibc's arenas are made as threads first allocate).
     pbrl_learner::run::service::steady_allocator();
     let matches = Cli::command().get_matches();
-    let mut command = match Cli::from_arg_matches(&matches) {
-        Ok(cli) => cli.command,
+    let (mut command, verbose) = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => (cli.command, cli.verbose),
         Err(e) => e.exit(),
     };
     // NOTE: presets change only what the user did not give on the command line.
@@ -175,29 +179,41 @@ fn main() -> Result<()> {
     // NOTE: the error that ends a run goes to its log too (a run under `pbrl exp` has no
     // terminal; the runner points at the log).
     let mut error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
-    // NOTE: by default pbrl's own progress and every crate's warnings; RUST_LOG brings the
-    // rest back (zenoh's INFO lines, the resolved config at debug). A benchmark prints its
-    // table and warnings only (its runs' progress lines would break the table).
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+    // NOTE: the terminal shows by default the bar, one line per curve row (printed by the
+    // bar; without a terminal, as log lines) and every crate's warnings and errors; the
+    // run's `train.log` also keeps pbrl's own progress (feedback sessions, checkpoints).
+    // `--verbose` brings pbrl's progress to the terminal too, and RUST_LOG sets both (zenoh's
+    // INFO lines, the resolved config at debug). A benchmark prints its table and warnings
+    // only (its runs' progress lines would break the table).
+    let progress =
+        "warn,pbrl=info,pbrl_common=info,pbrl_actor=info,pbrl_learner=info,pbrl_teacher=info";
+    let on_terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let from_env = || tracing_subscriber::EnvFilter::try_from_default_env().ok();
+    let terminal = from_env().unwrap_or_else(|| {
         if matches!(command, Command::Bench(_)) {
             "warn".into()
+        } else if verbose {
+            progress.into()
+        } else if on_terminal {
+            "warn".into()
         } else {
-            "warn,pbrl=info,pbrl_common=info,pbrl_actor=info,pbrl_learner=info,pbrl_teacher=info"
-                .into()
+            format!("warn,{}=info", pbrl_learner::run::curve::CURVE_TARGET).into()
         }
     });
+    let file = from_env().unwrap_or_else(|| progress.into());
     tracing_subscriber::registry()
-        .with(filter)
         // NOTE: colour escapes only on a terminal; a pipe or a file gets plain text.
         .with(
             tracing_subscriber::fmt::layer()
-                .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-                .with_writer(std::io::stderr),
+                .with_ansi(on_terminal)
+                .with_writer(pbrl_learner::run::curve::AroundTheBar)
+                .with_filter(terminal),
         )
         .with(log_file.map(|f| {
             tracing_subscriber::fmt::layer()
                 .with_ansi(false)
                 .with_writer(std::sync::Mutex::new(f))
+                .with_filter(file)
         }))
         .init();
     // NOTE: candle's elementwise pool spins while its workers run; beside the actors and

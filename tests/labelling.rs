@@ -225,6 +225,7 @@ fn sql(db: &Path, query: &str) -> Result<Vec<Value>, String> {
     {
         Ok(out) => out,
         Err(_) => Command::new("python3")
+            .env("PYTHONDONTWRITEBYTECODE", "1")
             .args(["-c", PY_SQL])
             .arg(db)
             .arg(query)
@@ -432,11 +433,10 @@ fn replies_are_read_to_their_end() {
 const ARROW_RIGHT: &str = "\u{E014}";
 
 #[test]
+#[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
 fn browser_labels_with_keys_and_undo_while_training_runs() {
     let _one = one_at_a_time();
-    if !browser_wanted("the browser test") {
-        return;
-    }
+    assert!(browser_wanted("the browser test"));
     let dir = tempfile::tempdir().unwrap();
     // NOTE: an undo window of 2 s, not 1: the skip is undone after its POST returns and a
     // WebDriver round trip, which on a loaded 2-core machine must not miss the window.
@@ -551,7 +551,7 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
     );
     assert!(
         drawn > 0.02,
-        "the scene covers {:.2}% of the side view: drawn too small to judge (results/labelling/page.png)",
+        "the scene covers {:.2}% of the side view: drawn too small to judge (the screenshots are in target/tmp/screenshots/labelling)",
         100.0 * drawn
     );
 }
@@ -564,6 +564,7 @@ fn python_client_answers_a_running_learner() {
     let said = dir.path().join("label.out");
     let mut py = Proc {
         child: Command::new("python3")
+            .env("PYTHONDONTWRITEBYTECODE", "1")
             .arg("deploy/label.py")
             .args(["--url", &format!("http://{addr}")])
             .args(["--name", "py", "--answer", "alternate", "--count", "3"])
@@ -673,11 +674,10 @@ fn profile_score(side: &Value) -> f64 {
 }
 
 #[test]
+#[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
 fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
     let _one = one_at_a_time();
-    if !browser_wanted("the page-reading labeller") {
-        return;
-    }
+    assert!(browser_wanted("the page-reading labeller"));
     let dir = tempfile::tempdir().unwrap();
     let (addr, out, train) = human_train(
         dir.path(),
@@ -696,8 +696,13 @@ fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
 
     // As a person meets it at three window sizes: nothing leaves the window, overlaps or
     // is cut off.
-    let shots = Path::new(env!("CARGO_MANIFEST_DIR")).join("results/labelling");
+    // NOTE: into the build folder; the committed copies in results/labelling are refreshed
+    // on purpose only: `PBRL_REFRESH_SCREENSHOTS=1 cargo test --test labelling
+    // a_labeller_who_reads` (docs/labelling.md).
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("screenshots/labelling");
     std::fs::create_dir_all(&shots).unwrap();
+    let refresh = std::env::var("PBRL_REFRESH_SCREENSHOTS").as_deref() == Ok("1");
+    let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("results/labelling");
     // NOTE: the window's size is the page's plus the browser's frame.
     let frame = browser.exec(
         "return [window.outerWidth - window.innerWidth, window.outerHeight - window.innerHeight];",
@@ -723,8 +728,17 @@ fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
                 (inner == json!([w, 900])).then(|| browser.exec(LAYOUT_PROBLEMS, json!([])))
             },
         );
-        std::fs::write(shots.join(name), browser.screenshot()).unwrap();
-        assert_eq!(problems, json!([]), "at {w}x900 (results/labelling/{name})");
+        let png = browser.screenshot();
+        std::fs::write(shots.join(name), &png).unwrap();
+        if refresh {
+            std::fs::write(committed.join(name), &png).unwrap();
+        }
+        assert_eq!(
+            problems,
+            json!([]),
+            "at {w}x900 ({})",
+            shots.join(name).display()
+        );
     }
 
     const PAIRS: usize = 24;
@@ -766,6 +780,7 @@ fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
 #[test]
 fn python_client_summarises_what_the_strips_show() {
     let out = Command::new("python3")
+        .env("PYTHONDONTWRITEBYTECODE", "1")
         .args(["-m", "unittest", "deploy/test_label.py"])
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .output()

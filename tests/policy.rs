@@ -383,6 +383,7 @@ fn bad_input_is_refused_by_name() {
 }
 
 #[test]
+#[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
 fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
     use support::web::{wait_for, Browser, CHROMEDRIVER, CHROMIUM};
     let (a, b, root) = runs();

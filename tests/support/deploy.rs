@@ -186,6 +186,7 @@ c = sqlite3.connect('file:' + sys.argv[1] + '?mode=ro', uri=True, timeout=5)
 c.row_factory = sqlite3.Row
 for r in c.execute(sys.argv[2]): print(json.dumps(dict(r)))";
     let out = Command::new("python3")
+        .env("PYTHONDONTWRITEBYTECODE", "1")
         .args(["-c", PY])
         .arg(db)
         .arg(query)

@@ -664,8 +664,8 @@ impl Feedback {
                     labels,
                     epochs = stats.epochs,
                     pairs = stats.pairs,
-                    accuracy = format!("{:.3}", stats.accuracy),
-                    accuracy_on_new = format!("{accuracy_new:.3}"),
+                    accuracy = round3(stats.accuracy),
+                    accuracy_on_new = round3(accuracy_new),
                     ms = took.as_millis() as u64,
                     "reward ensemble trained"
                 );
@@ -1091,6 +1091,11 @@ fn shown(side: &Side, id: u64) -> Shown {
         start: side.start as u32,
         len: side.len as u32,
     }
+}
+
+/// A figure for a log field: a number, to three decimals (NaN stays NaN).
+fn round3(x: f64) -> f64 {
+    (x * 1000.0).round() / 1000.0
 }
 
 #[cfg(test)]

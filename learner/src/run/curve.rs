@@ -267,7 +267,52 @@ pub fn progress_bar(total: u64, at: u64) -> indicatif::ProgressBar {
     );
     bar.set_position(at.min(total));
     bar.reset_eta();
+    *lock_bar() = Some(bar.clone());
     bar
+}
+
+/// The log target of the curve's lines (one per row).
+pub const CURVE_TARGET: &str = "pbrl::curve";
+
+/// The bar on the terminal now, if any: the log's stderr writer draws around it.
+static SHOWN_BAR: std::sync::Mutex<Option<indicatif::ProgressBar>> = std::sync::Mutex::new(None);
+
+fn lock_bar() -> std::sync::MutexGuard<'static, Option<indicatif::ProgressBar>> {
+    // NOTE: a panic while holding it cannot leave the Option half-written.
+    SHOWN_BAR.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The log's writer for stderr: each line is written with the progress bar taken off the
+/// screen and drawn again after it ([`indicatif::ProgressBar::suspend`]), so a warning
+/// never leaves a stale copy of the bar in the scrollback. Without a bar, plain stderr.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct AroundTheBar;
+
+impl std::io::Write for AroundTheBar {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.write_all(buf)?;
+        Ok(buf.len())
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        let bar = lock_bar().clone();
+        match bar.filter(|b| !b.is_finished() && !b.is_hidden()) {
+            Some(bar) => bar.suspend(|| std::io::stderr().write_all(buf)),
+            None => std::io::stderr().write_all(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
+    }
+}
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for AroundTheBar {
+    type Writer = AroundTheBar;
+
+    fn make_writer(&'a self) -> Self::Writer {
+        *self
+    }
 }
 
 /// Episode statistics accumulated between curve rows.
@@ -371,16 +416,16 @@ impl Curve {
             100.0 * row.success_rate,
             row.env_steps_per_s,
         );
-        match &self.bar {
-            Some(bar) => {
-                bar.println(&line);
-                bar.set_message(format!(
-                    "eval success {:.0}%, return {:.1}",
-                    100.0 * row.eval_success_rate,
-                    row.eval_return_truth
-                ));
-            }
-            None => tracing::info!("{line}"),
+        // NOTE: the row goes to the log under its own target, which the terminal shows
+        // only where there is no bar (main.rs); on a terminal the bar prints it.
+        tracing::info!(target: CURVE_TARGET, "{line}");
+        if let Some(bar) = &self.bar {
+            bar.println(&line);
+            bar.set_message(format!(
+                "eval success {:.0}%, return {:.1}",
+                100.0 * row.eval_success_rate,
+                row.eval_return_truth
+            ));
         }
         if let Some(f) = self.file.as_mut() {
             writeln!(f, "{}", row.csv())?;
