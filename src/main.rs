@@ -148,7 +148,7 @@ fn main() -> Result<()> {
     use tracing_subscriber::layer::{Layer, SubscriberExt};
     use tracing_subscriber::util::SubscriberInitExt;
     // NOTE: before any thread starts (glibc's arenas are made as threads first allocate).
-    pbrl_learner::run::service::steady_allocator();
+    pbrl_common::alloc::steady_allocator();
     let matches = Cli::command().get_matches();
     let (mut command, verbose) = match Cli::from_arg_matches(&matches) {
         Ok(cli) => (cli.command, cli.verbose),

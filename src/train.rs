@@ -10,7 +10,7 @@ use pbrl_actor::runner::{self, ActorConfig, Task, POINT_HORIZON};
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 use pbrl_learner::run::config;
 use pbrl_learner::run::run_folder::RunFolder;
-use pbrl_learner::run::service::{self, Algo, LearnerConfig, RewardSource};
+use pbrl_learner::run::service::{self, Algo, LearnerConfig};
 use pbrl_teacher::human::HumanConfig;
 use pbrl_teacher::scripted::{ScriptedConfig, TeacherKind};
 use pbrl_teacher::service::{self as teaching, default_id, TeacherConfig, TeacherSummary};
@@ -97,18 +97,7 @@ impl LearnArgs {
         if cfg.pref.model.anchor > 0.0 {
             cfg.pref.model.goal = Some(self.task.goal_obs());
         }
-        // NOTE: Decoupled PEBBLE trains on lambda_t r_task + r_hat with lambda_0 15: SAC's
-        // critics then chase targets 15 times the task baseline's, and learn them slower
-        // at the same learning rate. Scaled by 1 / lambda_0 they keep the baseline's size
-        // (measured on feeding, 3 seeds at 1M env steps: success 0.60 against 0.46).
-        let scaled = cfg.algo == Algo::Sac
-            && cfg.reward == RewardSource::Decoupled
-            && self.preset != "paper"
-            && !self.explicit.contains("sac_reward_scale")
-            && !cfg.sac.lambda_scale;
-        if scaled {
-            cfg.sac.reward_scale = 1.0 / cfg.pref.lambda0.max(1.0);
-        }
+        cfg.scale_decoupled_reward(self.preset == "paper", &self.explicit);
         cfg.validate()?;
         Ok(cfg)
     }

@@ -34,7 +34,17 @@ fn a_training_run_shows_the_bar_and_its_rows_and_no_chatter() {
     );
     tmux(
         &socket,
-        &["new-session", "-d", "-x", "240", "-y", "50", "sh", "-c", &train],
+        &[
+            "new-session",
+            "-d",
+            "-x",
+            "240",
+            "-y",
+            "50",
+            "sh",
+            "-c",
+            &train,
+        ],
     );
     tmux(&socket, &["set-option", "-g", "remain-on-exit", "on"]);
     // Blocks until the run's shell says it is done.

@@ -1,6 +1,7 @@
 //! Types shared by every pbrl process: the trajectory record an actor publishes, the wire
-//! messages and their key expressions, the observation normaliser.
+//! messages and their key expressions, the observation normaliser, the allocator's settings.
 
+pub mod alloc;
 pub mod bus;
 pub mod connect;
 pub mod keys;
