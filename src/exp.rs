@@ -410,6 +410,9 @@ struct Running {
 }
 
 pub fn run(args: RunArgs) -> Result<()> {
+    if args.parallel == Some(0) {
+        bail!("--parallel 0: runs at a time must be at least 1");
+    }
     let grid = Grid::load(&args.grid)?;
     let (i, n) = shard(&args.shard)?;
     let out = args
@@ -433,7 +436,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         .map(|(_, c)| c)
         .collect();
     let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
-    let parallel = args.parallel.unwrap_or((cores / 2).max(1)).max(1);
+    let parallel = args.parallel.unwrap_or((cores / 2).max(1));
     let exe = std::env::current_exe().context("finding the pbrl executable")?;
     let mut todo: Vec<Cell> = Vec::new();
     for c in &cells {

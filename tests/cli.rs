@@ -199,3 +199,28 @@ fn logs_to_a_pipe_carry_no_colour_escapes() {
         "an escape in a piped log: {stderr:?}"
     );
 }
+
+#[test]
+fn an_experiment_with_no_runs_at_a_time_is_refused_before_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = dir.path().join("g.toml");
+    std::fs::write(
+        &grid,
+        "name = \"g\"\nalgos = [\"sac\"]\nrewards = [\"truth\"]\nseeds = [1]\nsteps = 100\n",
+    )
+    .unwrap();
+    let out_dir = dir.path().join("out");
+    let out = pbrl(&[
+        "exp",
+        "run",
+        grid.to_str().unwrap(),
+        "--parallel",
+        "0",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(stderr.contains("--parallel 0"), "{stderr}");
+    assert!(!out_dir.exists(), "nothing made");
+}
