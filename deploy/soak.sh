@@ -5,7 +5,7 @@
 #   bash deploy/soak.sh MINUTES [OUT]        (OUT default /tmp/pbrl-soak; emptied first)
 #
 # The learner trains Decoupled PEBBLE on the feeding world from people at a labelling page
-# (`pbrl teacher --human`); the labellers are scripted clients of its HTTP API
+# (`pbrl teacher --teacher human`); the labellers are scripted clients of its HTTP API
 # (deploy/label.py): two at a person's pace (a pair every 3 s), one every 0.5 s and one as
 # fast as it can. The budget never runs out in a soak. At the end the labellers stop, the
 # teacher's last answers reach the learner, and it prints: env steps/s, answers given and
@@ -59,7 +59,7 @@ learner=${pids[-1]}
 for i in $(seq 0 15); do
     start actor "$out/actor-$i.log" "$bin" actor --task feeding --run soak --id "$i" "${connect[@]}"
 done
-start teacher "$out/teacher.log" "$bin" teacher --human --run soak --http "127.0.0.1:$http" \
+start teacher "$out/teacher.log" "$bin" teacher --teacher human --run soak --http "127.0.0.1:$http" \
     --undo-s 0 --teacher-state "$out/teacher.sqlite" "${connect[@]}"
 teacher=${pids[-1]}
 until (exec 3<> "/dev/tcp/127.0.0.1/$http") 2>/dev/null; do sleep 0.2; done

@@ -39,7 +39,7 @@ enum Command {
     /// Run one actor alone, joining a Zenoh network.
     Actor(train::ActorArgs),
     /// Run a teacher alone, answering a run's preference queries over Zenoh: scripted, or
-    /// people at a labelling page (--human).
+    /// people at a labelling page (--teacher human).
     Teacher(train::TeacherProcessArgs),
     /// Experiments: a grid of runs (`pbrl exp run GRID.toml`) and its figures (`pbrl exp plot DIR`).
     #[command(subcommand)]

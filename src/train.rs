@@ -330,11 +330,9 @@ pub struct TeacherProcessArgs {
     /// Run id, as the learner's.
     #[arg(long)]
     pub run: String,
+    /// Who answers: `--teacher human` for people at the labelling page on --http.
     #[command(flatten)]
     pub teacher: TeacherArgs,
-    /// People answer, at the labelling page on --http (as `--teacher human`).
-    #[arg(long)]
-    pub human: bool,
     #[command(flatten)]
     pub world: WorldArgs,
     #[arg(long, value_enum, default_value = "feeding")]
@@ -346,10 +344,7 @@ pub struct TeacherProcessArgs {
     pub connect: ConnectArgs,
 }
 
-pub async fn teacher(mut args: TeacherProcessArgs) -> Result<()> {
-    if args.human {
-        args.teacher.kind = Who::Human;
-    }
+pub async fn teacher(args: TeacherProcessArgs) -> Result<()> {
     let world = args.world.config()?;
     let state = PathBuf::from(format!("teacher-{}.sqlite", args.run));
     let session = args.connect.open().await?;

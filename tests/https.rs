@@ -1,4 +1,4 @@
-//! The labelling page across machines is HTTPS: `pbrl teacher --human` refuses to listen
+//! The labelling page across machines is HTTPS: `pbrl teacher --teacher human` refuses to listen
 //! beyond loopback without a certificate, and with one (from `deploy/certs.sh page:...`)
 //! serves the page and its API over TLS: a client that trusts the CA gets them, one that
 //! does not, or that speaks plain HTTP to the port, gets nothing.
@@ -48,7 +48,7 @@ async fn the_page_beyond_loopback_is_https_only_and_a_client_without_the_ca_sees
     let teacher = |http: &str, extra: &[String]| -> Vec<String> {
         let mut a: Vec<String> = [
             "teacher",
-            "--human",
+            "--teacher=human",
             "--run=ward",
             "--repeat-share=0",
             "--token=s3cret",

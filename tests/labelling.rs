@@ -818,7 +818,7 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     let undo_s = 5;
     let teacher_args: Vec<String> = [
         "teacher",
-        "--human",
+        "--teacher=human",
         &format!("--run={run}"),
         &format!("--connect={endpoint}"),
         &format!("--http={addr}"),
