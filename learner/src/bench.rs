@@ -16,9 +16,10 @@ use crate::pref::reward_model::{Labelled, RewardModel, RewardModelConfig, Segmen
 use crate::rl::ppo::{Ppo, PpoConfig};
 use crate::rl::sac::{Sac, SacConfig};
 use crate::run::backbone::Backbone;
-use crate::run::checkpoint::{open_folder, Checkpoints, Of, Progress};
+use crate::run::checkpoint::{open_folder, Checkpoints, Of};
 use crate::run::config::{Algo, LearnerConfig};
 use crate::run::curve::Curve;
+use crate::run::progress::Progress;
 use crate::run::run_folder::RunFolder;
 
 const OBS: usize = 25;

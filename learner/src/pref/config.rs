@@ -4,7 +4,6 @@
 use serde::{Deserialize, Serialize};
 
 use crate::pref::query::Sampler;
-use crate::pref::reward::Schedule;
 use crate::pref::reward_model::RewardModelConfig;
 
 fn default_max_open() -> u64 {
@@ -17,6 +16,16 @@ fn one() -> f64 {
 
 fn guard_gain() -> f64 {
     9.0
+}
+
+/// How lambda_t decays (paper Eq. 4-5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Schedule {
+    /// lambda_0 (T - t) / T.
+    Linear,
+    /// lambda_0 (1 - rho)^t.
+    Exp,
 }
 
 /// Preference learning (`shared/method.md` sections 1-5). The defaults are PEBBLE's; the

@@ -17,7 +17,7 @@ use candle_core::{Device, Tensor};
 use pbrl_common::Trajectory;
 use serde::{Deserialize, Serialize};
 
-use crate::pref::config::PrefConfig;
+use crate::pref::config::{PrefConfig, Schedule};
 use crate::pref::entropy::StateEntropy;
 use crate::pref::reward_model::RewardModel;
 use crate::rl::replay::Batch;
@@ -52,16 +52,6 @@ impl RewardSource {
             RewardSource::Decoupled => "decoupled",
         }
     }
-}
-
-/// How lambda_t decays (paper Eq. 4-5).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum Schedule {
-    /// lambda_0 (T - t) / T.
-    Linear,
-    /// lambda_0 (1 - rho)^t.
-    Exp,
 }
 
 /// lambda_t at `t` env steps of a run of `total` (0 past the end of the linear schedule).

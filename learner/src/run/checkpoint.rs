@@ -7,40 +7,17 @@ use std::io::Write;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::bus::Receipts;
 use pbrl_common::nets::import;
 use pbrl_common::wire::{self, EvalRequest};
 use serde::{Deserialize, Serialize};
 
 use crate::pref::feedback::{Feedback, FeedbackState};
 use crate::pref::reward::{TaskGuard, TrainReward};
-use crate::run::backbone::{Backbone, BackboneState, LastLosses, Publication};
+use crate::run::backbone::{Backbone, BackboneState};
 use crate::run::config::{check_resume, LearnerConfig};
-use crate::run::curve::{Curve, CurveRow, Window};
+use crate::run::curve::{Curve, CurveRow};
+use crate::run::progress::Progress;
 use crate::run::run_folder::{FileSum, RunFolder};
-
-/// The learner loop's counters and bookkeeping: with the networks, optimisers, generators,
-/// replay buffer and preference learning's state, everything a resumed run needs.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct Progress {
-    pub version: u64,
-    pub env_steps: u64,
-    pub updates: u64,
-    pub publication: Publication,
-    pub next_row: u64,
-    pub next_checkpoint: u64,
-    pub window: Window,
-    /// Numbered trajectories received, per actor (each taken once).
-    pub receipts: Receipts,
-    /// Evaluations asked again.
-    pub eval_retries: u64,
-    /// The newest losses.
-    pub losses: LastLosses,
-    /// Wall time of the run in earlier processes.
-    pub wall_s: f64,
-    pub rows_written: u64,
-    pub stale: u64,
-}
 
 /// A checkpoint's `state.bin`.
 #[derive(Serialize, Deserialize)]

@@ -459,7 +459,7 @@ pub fn check_resume(stored: &serde_json::Value, new: &serde_json::Value) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pref::reward::Schedule;
+    use crate::pref::config::Schedule;
 
     #[test]
     fn the_plain_config_is_the_defaults_with_the_label_efficiency_off() {

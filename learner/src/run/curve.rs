@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::pref::feedback::Feedback;
 use crate::pref::reward::TrainReward;
-use crate::run::checkpoint::Progress;
+use crate::run::progress::{Progress, Window};
 
 /// The row struct, its CSV header and its CSV line from one list of
 /// `name: type => "format"`.
@@ -315,24 +315,17 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for AroundTheBar {
     }
 }
 
-/// Episode statistics accumulated between curve rows.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct Window {
-    pub episodes: u64,
-    pub truth: f64,
-    pub success: f64,
-    pub human: f64,
-    pub task: f64,
-}
-
-impl Window {
-    pub fn add(&mut self, o: &Outcome) {
-        self.episodes += 1;
-        self.truth += o.return_truth as f64;
-        self.human += o.return_human as f64;
-        self.task += o.return_task as f64;
-        self.success += o.success as u8 as f64;
-    }
+/// How well a learnt reward tracks the ground truth on an evaluation's episodes (Pearson
+/// correlations; NaN where undefined).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tracking {
+    /// r_hat with r, per step.
+    pub step: f64,
+    /// r_hat with the preference part r_H alone, and with the task part r_task, per step.
+    pub step_human: f64,
+    pub step_task: f64,
+    /// Episode sums of r_hat with those of r.
+    pub sum: f64,
 }
 
 /// A row waiting for its evaluation.
@@ -439,11 +432,7 @@ impl Curve {
     /// Fill in an evaluation's figures, then write every row that is complete in order.
     /// `tracking`: the learnt reward's correlations with the truth on the evaluation's
     /// episodes (per step, per episode sum), when there is one.
-    pub fn complete(
-        &mut self,
-        r: EvalResult,
-        tracking: Option<crate::run::evaluation::Tracking>,
-    ) -> Result<()> {
+    pub fn complete(&mut self, r: EvalResult, tracking: Option<Tracking>) -> Result<()> {
         let Some(p) = self.pending.iter_mut().find(|p| p.request.id == r.id) else {
             tracing::debug!(id = r.id, "an evaluation answered twice or after its row");
             return Ok(());

@@ -11,7 +11,7 @@ use pbrl_common::wire::{EvalRequest, EvalSteps};
 use crate::pref::reward_model::RewardModel;
 use crate::run::bus::LearnerBus;
 use crate::run::curve::correlation;
-use crate::run::curve::{Curve, CurveRow, Pending};
+use crate::run::curve::{Curve, CurveRow, Pending, Tracking};
 
 /// Seeds of the evaluation episodes: the same at every row, apart from training seeds
 /// (`actor::runner::episode_seed`, below 2^63).
@@ -83,19 +83,6 @@ pub async fn retry(bus: &LearnerBus, curve: &mut Curve, actors: &mut Actors) -> 
         bus.evaluate(&p.request).await?;
     }
     Ok(asked)
-}
-
-/// How well a learnt reward tracks the ground truth on an evaluation's episodes (Pearson
-/// correlations; NaN where undefined).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Tracking {
-    /// r_hat with r, per step.
-    pub step: f64,
-    /// r_hat with the preference part r_H alone, and with the task part r_task, per step.
-    pub step_human: f64,
-    pub step_task: f64,
-    /// Episode sums of r_hat with those of r.
-    pub sum: f64,
 }
 
 /// How well `model` tracks the ground truth on an evaluation's episodes: the Pearson

@@ -21,10 +21,11 @@ use crate::pref::reward::{Pool, TrainReward};
 use crate::pref::reward_model::RewardModel;
 use crate::run::backbone::Backbone;
 use crate::run::bus::LearnerBus;
-use crate::run::checkpoint::{self, fresh_progress, Checkpoints, Of, Progress};
+use crate::run::checkpoint::{self, fresh_progress, Checkpoints, Of};
 use crate::run::config::{Algo, LearnerConfig};
 use crate::run::curve::{progress_bar, Clock, Curve, CurveRow};
 use crate::run::evaluation::{self, rhat_tracking, Actors, EVAL_SEED_BASE};
+use crate::run::progress::Progress;
 use crate::run::run_folder::RunFolder;
 
 /// What a finished run did.
