@@ -24,10 +24,11 @@ fn a_training_run_shows_the_bar_and_its_rows_and_no_chatter() {
     let dir = tempfile::tempdir().unwrap();
     let socket = format!("pbrl-test-{}", std::process::id());
     let out = dir.path().join("run");
-    // The default method (learnt reward, feedback sessions) on the point task, small.
+    // The default method (learnt reward, feedback sessions) on the point task, small;
+    // `--sync` trains the ensemble in place, so its line is in the log before the end.
     let train = format!(
         "{} train --task=point --steps=6000 --log-every=1000 --unsup-steps=1000 \
-         --feedback-interval=1000 --eval-episodes=5 --actors=1 --run=term --out={} \
+         --feedback-interval=1000 --eval-episodes=5 --actors=1 --sync --run=term --out={} \
          2>&1; tmux -L {socket} wait-for -S done",
         env!("CARGO_BIN_EXE_pbrl"),
         out.display()
