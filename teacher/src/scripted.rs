@@ -40,17 +40,10 @@ pub enum TeacherKind {
 }
 
 impl TeacherKind {
-    /// Every kind, in the order of Table I.
-    pub const ALL: [TeacherKind; 6] = [
-        TeacherKind::Oracle,
-        TeacherKind::Noisy,
-        TeacherKind::Mistake,
-        TeacherKind::Skip,
-        TeacherKind::Equal,
-        TeacherKind::Myopic,
-    ];
+    /// The six of Table I, in its order: the first six of [`TeacherKind::EVERY`].
+    pub const ALL: &'static [TeacherKind] = Self::EVERY.split_at(6).0;
 
-    /// Table I's six and the teachers that err like people.
+    /// Table I's six, then the teachers that err like people.
     pub const EVERY: [TeacherKind; 7] = [
         TeacherKind::Oracle,
         TeacherKind::Noisy,
