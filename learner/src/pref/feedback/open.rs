@@ -1,0 +1,310 @@
+//! The queries in flight and their answers: each query committed to the label store before
+//! it is sent, each answer committed before it is acknowledged and added to D, queries asked
+//! again, expired or withdrawn.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use pbrl_common::wire::{self, now_ms, Answer, AnswerAck, Body, Preference, Query, Shown};
+
+use super::{Answered, Feedback, Side};
+use crate::pref::labels::{Stored, StoredTrajectory};
+use crate::pref::query::{Candidate, Sampler, TrajKey};
+use crate::pref::reward_model::{Labelled, Segment};
+
+/// A query asked and not answered yet.
+pub(super) struct InFlight {
+    pub(super) query: Box<Query>,
+    pub(super) sent: Instant,
+    /// Its two trajectories (for the bound on open queries per trajectory).
+    pub(super) keys: [TrajKey; 2],
+}
+
+impl Feedback {
+    pub(super) fn segment(&self, id: u64) -> Result<Arc<Segment>> {
+        if let Some(s) = self.segments.get(&id) {
+            return Ok(s.clone());
+        }
+        let s = self.store.segment(id)?;
+        Ok(Arc::new(Segment {
+            obs: s.obs,
+            actions: s.actions,
+            features: s.features,
+        }))
+    }
+
+    /// Steps `start .. start + len` of stored trajectory `id`, for D (the whole
+    /// trajectory's segment, shared, when the query compared whole trajectories).
+    pub(super) fn labelled_side(
+        &mut self,
+        id: u64,
+        (start, len): (usize, usize),
+    ) -> Result<Arc<Segment>> {
+        let whole = self.segment(id)?;
+        let a = self.model.act_dim();
+        let steps = whole.actions.len() / a.max(1);
+        if start == 0 && len == steps {
+            // Shared by every label of this trajectory (kept while D holds it).
+            self.segments.insert(id, whole.clone());
+            return Ok(whole);
+        }
+        if len == 0 || start + len > steps {
+            anyhow::bail!(
+                "label store {}: segment start {start}, length {len} of trajectory {id} is not within its {steps} steps",
+                self.store.path().display()
+            );
+        }
+        Ok(Arc::new(whole.cut(start, len, steps)))
+    }
+
+    /// Record the chosen pairs in the label store (each query committed before it is sent)
+    /// and return the queries.
+    pub(super) fn ask(
+        &mut self,
+        session: u64,
+        env_steps: u64,
+        sampler: Sampler,
+        pairs: &[(Side, Side)],
+        r_avg: Option<f32>,
+    ) -> Result<Vec<Query>> {
+        let mut out = Vec::with_capacity(pairs.len());
+        let sampler_name = match sampler {
+            Sampler::Uniform => "uniform",
+            Sampler::Disagreement => "disagreement",
+            Sampler::Entropy => "entropy",
+        };
+        for (a, b) in pairs {
+            let asked_at_ms = now_ms();
+            let mut built = None;
+            let run = self.run.clone();
+            let expires_at_ms = match self.cfg.query_expiry_s {
+                0 => 0,
+                s => asked_at_ms + s * 1000,
+            };
+            let withdraw_at_steps = match self.cfg.query_stale_steps {
+                0 => 0,
+                s => env_steps + s,
+            };
+            let asked = self.store.ask(
+                session,
+                sampler_name,
+                env_steps,
+                asked_at_ms,
+                &stored(a),
+                &stored(b),
+                |id, first, second| {
+                    let q = Query {
+                        id,
+                        session,
+                        asked_at_ms,
+                        expires_at_ms,
+                        first: shown(a, first),
+                        second: shown(b, second),
+                        r_avg,
+                        withdraw_at_steps,
+                    };
+                    let bytes = wire::encode(&run, &Body::Query(Box::new(q.clone())));
+                    built = Some(q);
+                    bytes
+                },
+            )?;
+            let q = built.context("the label store did not build the query")?;
+            self.segments
+                .insert(asked.first, Arc::new(seg_of(&a.trajectory)));
+            self.segments
+                .insert(asked.second, Arc::new(seg_of(&b.trajectory)));
+            self.in_flight.insert(
+                asked.query,
+                InFlight {
+                    query: Box::new(q.clone()),
+                    sent: Instant::now(),
+                    keys: [a.trajectory.key, b.trajectory.key],
+                },
+            );
+            out.push(q);
+        }
+        Ok(out)
+    }
+
+    /// Store a teacher's answer (committed before this returns) and say whether to
+    /// acknowledge it.
+    pub fn answer(&mut self, a: &Answer) -> Result<Answered> {
+        if a.repeat {
+            return Ok(match self.store.repeat(a, now_ms())? {
+                Stored::Unknown => {
+                    self.counters.unknown_answers += 1;
+                    tracing::warn!(
+                        query = a.query,
+                        teacher = %a.teacher_id,
+                        "dropped a repeated answer to a query this run never asked"
+                    );
+                    Answered::Dropped
+                }
+                _ => Answered::Ack(AnswerAck {
+                    teacher_id: a.teacher_id.clone(),
+                    queries: Vec::new(),
+                    repeats: vec![(a.query, a.labeller.clone())],
+                }),
+            });
+        }
+        let stored = self.store.answer(a, now_ms())?;
+        match stored {
+            Stored::New | Stored::Late => {
+                let open = self.in_flight.remove(&a.query);
+                if a.preference != Preference::Skip {
+                    let bounds = |s: &Shown| (s.id, (s.start as usize, s.len as usize));
+                    let (first, second) = match &open {
+                        Some(f) => (bounds(&f.query.first), bounds(&f.query.second)),
+                        None => {
+                            // NOTE: a late answer to an expired query: its ids are in D.
+                            let row = self
+                                .store
+                                .labels_since(0)?
+                                .into_iter()
+                                .find(|r| r.query == a.query)
+                                .context("a stored answer is not in D")?;
+                            (
+                                (row.first, row.first_segment),
+                                (row.second, row.second_segment),
+                            )
+                        }
+                    };
+                    let (first, second) = (
+                        self.labelled_side(first.0, first.1)?,
+                        self.labelled_side(second.0, second.1)?,
+                    );
+                    self.data.push(Labelled {
+                        first,
+                        second,
+                        target: target(a.preference),
+                    });
+                }
+            }
+            Stored::Repeated => {
+                self.counters.repeated_answers += 1;
+                tracing::debug!(query = a.query, teacher = %a.teacher_id, "an answer came again; the first stands");
+            }
+            Stored::Unknown => {
+                self.counters.unknown_answers += 1;
+                tracing::warn!(
+                    query = a.query,
+                    teacher = %a.teacher_id,
+                    "dropped an answer to a query this run never asked"
+                );
+                return Ok(Answered::Dropped);
+            }
+        }
+        self.prune_segments();
+        Ok(Answered::Ack(AnswerAck {
+            teacher_id: a.teacher_id.clone(),
+            queries: vec![a.query],
+            repeats: Vec::new(),
+        }))
+    }
+
+    /// Forget the whole trajectories no query in flight compares and D does not share:
+    /// a label of a segment holds its own cut, so keeping the whole trajectory of every
+    /// query ever asked would grow the learner by two trajectories a label.
+    pub(super) fn prune_segments(&mut self) {
+        let open: std::collections::HashSet<u64> = self
+            .in_flight
+            .values()
+            .flat_map(|f| [f.query.first.id, f.query.second.id])
+            .collect();
+        self.segments
+            .retain(|id, s| Arc::strong_count(s) > 1 || open.contains(id));
+    }
+
+    /// Queries to ask again (unanswered for `query_retry_s`) at `env_steps`; queries past
+    /// `query_expiry_s` expire instead, and those grown stale (`query_stale_steps`) are
+    /// withdrawn, a fresh one owed in each one's place.
+    pub fn retry(&mut self, env_steps: u64) -> Result<Vec<Query>> {
+        let retry = Duration::from_secs(self.cfg.query_retry_s);
+        let now = now_ms();
+        let mut again = Vec::new();
+        let mut expired = Vec::new();
+        let mut stale = Vec::new();
+        for (id, f) in self.in_flight.iter_mut() {
+            let age_ms = now.saturating_sub(f.query.asked_at_ms);
+            if self.cfg.query_expiry_s > 0 && age_ms >= self.cfg.query_expiry_s * 1000 {
+                expired.push(*id);
+            } else if f.query.stale_at(env_steps) {
+                stale.push(*id);
+            } else if f.sent.elapsed() >= retry {
+                f.sent = Instant::now();
+                again.push((*f.query).clone());
+            }
+        }
+        for id in expired {
+            self.store.expire(id, now)?;
+            self.in_flight.remove(&id);
+            tracing::warn!(query = id, "a query went unanswered too long: expired");
+        }
+        for id in stale {
+            // NOTE: the store says it was withdrawn; an answer that still comes (a person
+            // held the pair) is stored as late, exactly once.
+            if self.store.withdraw(id, now, env_steps)? {
+                self.owed += 1;
+                self.counters.withdrawn_queries += 1;
+            }
+            self.in_flight.remove(&id);
+            tracing::debug!(
+                query = id,
+                env_steps,
+                "a stale query withdrawn; a fresh one owed"
+            );
+        }
+        self.counters.retried_queries += again.len() as u64;
+        Ok(again)
+    }
+}
+
+/// The soft target of a preference: P[second preferred].
+pub(crate) fn target(p: Preference) -> f32 {
+    match p {
+        Preference::First => 0.0,
+        Preference::Second => 1.0,
+        Preference::Equal | Preference::Skip => 0.5,
+    }
+}
+
+pub(super) fn seg_of(c: &Candidate) -> Segment {
+    Segment {
+        obs: c.obs.clone(),
+        actions: c.actions.clone(),
+        features: c.features.clone(),
+    }
+}
+
+pub(super) fn stored(side: &Side) -> StoredTrajectory<'_> {
+    let c = &*side.trajectory;
+    StoredTrajectory {
+        actor: c.key.actor,
+        incarnation: c.key.incarnation,
+        seq: c.key.seq,
+        seed: c.seed,
+        policy_version: c.policy_version,
+        obs_dim: c.obs_dim as usize,
+        act_dim: c.act_dim as usize,
+        obs: &c.obs,
+        actions: &c.actions,
+        features: &c.features,
+        segment: (side.start, side.len),
+    }
+}
+
+pub(super) fn shown(side: &Side, id: u64) -> Shown {
+    let c = &*side.trajectory;
+    Shown {
+        id,
+        seed: c.seed,
+        policy_version: c.policy_version,
+        act_dim: c.act_dim,
+        actions: c.actions.clone(),
+        truth: c.truth.clone(),
+        replay: None,
+        start: side.start as u32,
+        len: side.len as u32,
+    }
+}
