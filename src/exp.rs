@@ -409,12 +409,8 @@ struct Running {
     from_steps: u64,
 }
 
-pub fn run(args: RunArgs) -> Result<()> {
-    if args.parallel == Some(0) {
-        bail!("--parallel 0: runs at a time must be at least 1");
-    }
-    let grid = Grid::load(&args.grid)?;
-    let (i, n) = shard(&args.shard)?;
+/// The grid's output folder, made, with the grid kept in it.
+fn prepare(args: &RunArgs, grid: &Grid) -> Result<PathBuf> {
     let out = args
         .out
         .clone()
@@ -427,6 +423,97 @@ pub fn run(args: RunArgs) -> Result<()> {
         std::fs::copy(&args.grid, &kept)
             .with_context(|| format!("copying the grid into {}", out.display()))?;
     }
+    Ok(out)
+}
+
+/// Start `cell`'s run (resuming it where its folder stands); its name back if it could not
+/// start.
+fn launch(exe: &Path, grid: &str, cell: Cell, out: &Path) -> Result<Running, String> {
+    let folder = RunFolder::new(out.join(&cell.name));
+    let from_steps = last_row(&folder).map_or(0, |r| r.0);
+    let mut cmd = Command::new(exe);
+    cmd.arg("train")
+        .args(&cell.args)
+        .arg(format!("--run={}", run_id(grid, &cell.name)))
+        .arg(format!("--out={}", folder.root.display()))
+        .arg("--quiet")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    // NOTE: its own process group: a Ctrl-C reaches the runner, which forwards one
+    // stop to each run (a second signal would make a run exit without checkpoint).
+    std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
+    let child = match cmd.spawn() {
+        Ok(child) => child,
+        Err(e) => {
+            // NOTE: the other runs go on (e.g. the executable was rebuilt under a
+            // long grid); this one is reported with the failures.
+            println!("{}: could not start {}: {e}", cell.name, exe.display());
+            return Err(cell.name);
+        }
+    };
+    println!(
+        "{}: {} (log in {})",
+        cell.name,
+        if from_steps > 0 {
+            format!("resuming after {from_steps} env steps")
+        } else {
+            "starting".to_string()
+        },
+        folder.log().display()
+    );
+    Ok(Running {
+        cell,
+        child,
+        started: Instant::now(),
+        from_steps,
+    })
+}
+
+/// Take the runs that ended off `running`, saying how each ended; a run that exited before
+/// its total (and not for a stop) is added to `failed`.
+fn reap(
+    running: &mut Vec<Running>,
+    out: &Path,
+    stop: &std::sync::atomic::AtomicBool,
+    failed: &mut Vec<String>,
+) -> Result<()> {
+    let mut k = 0;
+    while k < running.len() {
+        if let Some(status) = running[k].child.try_wait()? {
+            let r = running.swap_remove(k);
+            let folder = RunFolder::new(out.join(&r.cell.name));
+            let finished = folder.finished_steps()?.is_some_and(|s| s >= r.cell.steps);
+            if finished {
+                println!(
+                    "{}: finished in {:.0} s",
+                    r.cell.name,
+                    r.started.elapsed().as_secs_f64()
+                );
+            } else if stop.load(std::sync::atomic::Ordering::Relaxed) && status.success() {
+                println!("{}: stopped with a checkpoint", r.cell.name);
+            } else {
+                println!(
+                    "{}: exited ({status}) before its total; see {}",
+                    r.cell.name,
+                    folder.log().display()
+                );
+                failed.push(r.cell.name.clone());
+            }
+        } else {
+            k += 1;
+        }
+    }
+    Ok(())
+}
+
+pub fn run(args: RunArgs) -> Result<()> {
+    if args.parallel == Some(0) {
+        bail!("--parallel 0: runs at a time must be at least 1");
+    }
+    let grid = Grid::load(&args.grid)?;
+    let (i, n) = shard(&args.shard)?;
+    let out = prepare(&args, &grid)?;
     let all = grid.cells()?;
     check_flags(&all)?;
     let cells: Vec<Cell> = all
@@ -468,77 +555,15 @@ pub fn run(args: RunArgs) -> Result<()> {
     loop {
         while running.len() < parallel && !stop.load(std::sync::atomic::Ordering::Relaxed) {
             let Some(cell) = todo.pop() else { break };
-            let folder = RunFolder::new(out.join(&cell.name));
-            let from_steps = last_row(&folder).map_or(0, |r| r.0);
-            let mut cmd = Command::new(&exe);
-            cmd.arg("train")
-                .args(&cell.args)
-                .arg(format!("--run={}", run_id(&grid.name, &cell.name)))
-                .arg(format!("--out={}", folder.root.display()))
-                .arg("--quiet")
-                .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .stderr(Stdio::null());
-            // NOTE: its own process group: a Ctrl-C reaches the runner, which forwards one
-            // stop to each run (a second signal would make a run exit without checkpoint).
-            std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
-            let child = match cmd.spawn() {
-                Ok(child) => child,
-                Err(e) => {
-                    // NOTE: the other runs go on (e.g. the executable was rebuilt under a
-                    // long grid); this one is reported with the failures.
-                    println!("{}: could not start {}: {e}", cell.name, exe.display());
-                    failed.push(cell.name.clone());
-                    continue;
-                }
-            };
-            println!(
-                "{}: {} (log in {})",
-                cell.name,
-                if from_steps > 0 {
-                    format!("resuming after {from_steps} env steps")
-                } else {
-                    "starting".to_string()
-                },
-                folder.log().display()
-            );
-            running.push(Running {
-                cell,
-                child,
-                started: Instant::now(),
-                from_steps,
-            });
+            match launch(&exe, &grid.name, cell, &out) {
+                Ok(r) => running.push(r),
+                Err(name) => failed.push(name),
+            }
         }
         if running.is_empty() {
             break;
         }
-        // Reap finished runs.
-        let mut k = 0;
-        while k < running.len() {
-            if let Some(status) = running[k].child.try_wait()? {
-                let r = running.swap_remove(k);
-                let folder = RunFolder::new(out.join(&r.cell.name));
-                let finished = folder.finished_steps()?.is_some_and(|s| s >= r.cell.steps);
-                if finished {
-                    println!(
-                        "{}: finished in {:.0} s",
-                        r.cell.name,
-                        r.started.elapsed().as_secs_f64()
-                    );
-                } else if stop.load(std::sync::atomic::Ordering::Relaxed) && status.success() {
-                    println!("{}: stopped with a checkpoint", r.cell.name);
-                } else {
-                    println!(
-                        "{}: exited ({status}) before its total; see {}",
-                        r.cell.name,
-                        folder.log().display()
-                    );
-                    failed.push(r.cell.name.clone());
-                }
-            } else {
-                k += 1;
-            }
-        }
+        reap(&mut running, &out, &stop, &mut failed)?;
         if stop.load(std::sync::atomic::Ordering::Relaxed) && !forwarded {
             forwarded = true;
             for r in &running {

@@ -144,24 +144,12 @@ fn labels(cmd: LabelsCommand) -> Result<()> {
     }
 }
 
-fn main() -> Result<()> {
+/// The log: on the terminal (stderr) and, for a run, in its folder's `train.log`
+/// (appended). Returns the run's log again, for the error that may end the run.
+fn logging(command: &Command, verbose: bool) -> Result<Option<std::fs::File>> {
     use tracing_subscriber::layer::{Layer, SubscriberExt};
     use tracing_subscriber::util::SubscriberInitExt;
-    // NOTE: before any thread starts (glibc's arenas are made as threads first allocate).
-    pbrl_common::alloc::steady_allocator();
-    let matches = Cli::command().get_matches();
-    let (mut command, verbose) = match Cli::from_arg_matches(&matches) {
-        Ok(cli) => (cli.command, cli.verbose),
-        Err(e) => e.exit(),
-    };
-    // NOTE: presets change only what the user did not give on the command line.
-    if let (Command::Train(a) | Command::Learner(a), Some((_, m))) =
-        (&mut command, matches.subcommand())
-    {
-        a.learn.explicit = train::explicit_flags(m);
-    }
-    // The log goes to stderr and, for a run, to its folder's `train.log` (appended).
-    let log_file = match &command {
+    let log_file = match command {
         Command::Train(a) | Command::Learner(a) => {
             let dir = a.learn.out_dir();
             std::fs::create_dir_all(&dir)?;
@@ -178,7 +166,7 @@ fn main() -> Result<()> {
     };
     // NOTE: the error that ends a run goes to its log too (a run under `pbrl exp` has no
     // terminal; the runner points at the log).
-    let mut error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
+    let error_log = log_file.as_ref().and_then(|f| f.try_clone().ok());
     // NOTE: the terminal shows by default the bar, one line per curve row (printed by the
     // bar; without a terminal, as log lines) and every crate's warnings and errors; the
     // run's `train.log` also keeps pbrl's own progress (feedback sessions, checkpoints).
@@ -216,6 +204,11 @@ fn main() -> Result<()> {
                 .with_filter(file)
         }))
         .init();
+    Ok(error_log)
+}
+
+/// candle's and rayon's thread pools at one thread each, unless the user says otherwise.
+fn one_thread_pools() {
     // NOTE: candle's elementwise pool spins while its workers run; beside the actors and
     // zenoh, on 2 cores, a descheduled worker stalls the learner for whole time slices (a
     // SAC run next to another went at 60 env steps/s). It gains nothing at these sizes
@@ -230,6 +223,24 @@ fn main() -> Result<()> {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }
+}
+
+fn main() -> Result<()> {
+    // NOTE: before any thread starts (glibc's arenas are made as threads first allocate).
+    pbrl_common::alloc::steady_allocator();
+    let matches = Cli::command().get_matches();
+    let (mut command, verbose) = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => (cli.command, cli.verbose),
+        Err(e) => e.exit(),
+    };
+    // NOTE: presets change only what the user did not give on the command line.
+    if let (Command::Train(a) | Command::Learner(a), Some((_, m))) =
+        (&mut command, matches.subcommand())
+    {
+        a.learn.explicit = train::explicit_flags(m);
+    }
+    let mut error_log = logging(&command, verbose)?;
+    one_thread_pools();
     match command {
         Command::Env(cmd) => return pbrl_actor::cli::run(cmd),
         Command::Bench(cmd) => return bench::run(cmd),

@@ -241,23 +241,12 @@ fn method_of(run: &str) -> Option<&str> {
     Some(method)
 }
 
-pub fn plot(args: PlotArgs) -> Result<()> {
-    let out = args.out.clone().unwrap_or_else(|| args.dir.clone());
-    // Column prefix, file prefix, what the figures show, the column counting episodes.
-    let (prefix, file, what, episodes) = if args.training {
-        ("", "training_", "training episodes", "episodes")
-    } else if args.sampled {
-        (
-            "eval_sampled_",
-            "sampled_",
-            "evaluation, sampled actions",
-            "eval_episodes",
-        )
-    } else {
-        ("eval_", "", "evaluation", "eval_episodes")
-    };
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    // Runs grouped by method.
+/// The runs of `args.dir`, grouped by method (folders `<method>-s<seed>`).
+fn read_methods(
+    args: &PlotArgs,
+    prefix: &str,
+    episodes: &str,
+) -> Result<BTreeMap<String, Vec<RunData>>> {
     let mut methods: BTreeMap<String, Vec<RunData>> = BTreeMap::new();
     let entries =
         std::fs::read_dir(&args.dir).with_context(|| format!("reading {}", args.dir.display()))?;
@@ -278,8 +267,17 @@ pub fn plot(args: PlotArgs) -> Result<()> {
             args.dir.display()
         );
     }
+    Ok(methods)
+}
+
+/// Each method's curve: the mean over its seeds (with the interval) at every row.
+fn mean_curves(
+    methods: &BTreeMap<String, Vec<RunData>>,
+    args: &PlotArgs,
+    what: &str,
+) -> Result<BTreeMap<String, Curve>> {
     let mut curves: BTreeMap<String, Curve> = BTreeMap::new();
-    for (method, runs) in &methods {
+    for (method, runs) in methods {
         let every = runs[0].every;
         if runs.iter().any(|r| r.every != every) {
             bail!("runs of {method} have different log_every; they cannot be averaged");
@@ -308,65 +306,55 @@ pub fn plot(args: PlotArgs) -> Result<()> {
     if curves.is_empty() {
         bail!("{}: no run has {what} rows yet", args.dir.display());
     }
-    pbrl_actor::render::load_font()?;
-    let (xdesc, xfile) = match args.x {
-        XAxis::EnvSteps => ("env steps", ""),
-        XAxis::Labels => ("labels answered", "_vs_labels"),
-    };
-    for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
-        let path = out.join(format!("{file}{column}{xfile}.png"));
-        draw(
-            &path,
-            &format!("{title} ({what})"),
-            ylabel,
-            xdesc,
-            i,
-            i == 1,
-            &curves,
-        )?;
-        println!("wrote {}", path.display());
-    }
-    // Any other column, one figure each.
-    for column in &args.columns {
-        let mut extra: BTreeMap<String, Curve> = BTreeMap::new();
-        for (method, runs) in &methods {
-            let every = runs[0].every;
-            let buckets: std::collections::BTreeSet<u64> = runs
-                .iter()
-                .flat_map(|r| {
-                    r.extra
-                        .get(column)
-                        .into_iter()
-                        .flat_map(|m| m.keys().copied())
-                })
-                .collect();
-            let curve: Curve = buckets
-                .into_iter()
-                .filter_map(|b| {
-                    let xs: Vec<f64> = runs
-                        .iter()
-                        .filter_map(|r| r.extra.get(column).and_then(|m| m.get(&b)).copied())
-                        .collect();
-                    let none = (f64::NAN, 0.0, 0);
-                    Some((x_of(args.x, runs, b, every)?, [stats(&xs), none, none]))
-                })
-                .collect();
-            if !curve.is_empty() {
-                extra.insert(method.clone(), curve);
-            }
+    Ok(curves)
+}
+
+/// Each method's curve of the extra column `column`.
+fn extra_curves(
+    methods: &BTreeMap<String, Vec<RunData>>,
+    column: &str,
+    x: XAxis,
+) -> BTreeMap<String, Curve> {
+    let mut extra: BTreeMap<String, Curve> = BTreeMap::new();
+    for (method, runs) in methods {
+        let every = runs[0].every;
+        let buckets: std::collections::BTreeSet<u64> = runs
+            .iter()
+            .flat_map(|r| {
+                r.extra
+                    .get(column)
+                    .into_iter()
+                    .flat_map(|m| m.keys().copied())
+            })
+            .collect();
+        let curve: Curve = buckets
+            .into_iter()
+            .filter_map(|b| {
+                let xs: Vec<f64> = runs
+                    .iter()
+                    .filter_map(|r| r.extra.get(column).and_then(|m| m.get(&b)).copied())
+                    .collect();
+                let none = (f64::NAN, 0.0, 0);
+                Some((x_of(x, runs, b, every)?, [stats(&xs), none, none]))
+            })
+            .collect();
+        if !curve.is_empty() {
+            extra.insert(method.clone(), curve);
         }
-        if extra.is_empty() {
-            eprintln!("no run has values of {column}");
-            continue;
-        }
-        let path = out.join(format!("{column}{xfile}.png"));
-        draw(&path, column, column, xdesc, 0, false, &extra)?;
-        println!("wrote {}", path.display());
     }
-    // The summary table: each run's mean over the window up to each mark, then the mean
-    // over seeds with its 95% interval; for the success rate also the rate pooled over
-    // every episode of every seed in the window, with Wilson's interval (what the
-    // evaluation's own noise allows).
+    extra
+}
+
+/// The summary table (markdown and CSV): each run's mean over the window up to each mark,
+/// then the mean over seeds with its 95% interval; for the success rate also the rate
+/// pooled over every episode of every seed in the window, with Wilson's interval (what the
+/// evaluation's own noise allows).
+fn summary(
+    methods: &BTreeMap<String, Vec<RunData>>,
+    curves: &BTreeMap<String, Curve>,
+    args: &PlotArgs,
+    what: &str,
+) -> (String, String) {
     let window = |every: u64| args.window.max(every);
     let mut md = format!(
         "Figures of the {what}: each seed's mean over the rows of the last {} env steps up to the mark, then the mean over seeds [95% interval, Student's t]; \"pooled\" is the success rate over every episode of every seed in that window [Wilson's 95% interval].\n\n| method | env steps | seeds | ground-truth return | success rate | success, pooled (episodes) | preference return | labels |\n|---|---|---|---|---|---|---|---|\n",
@@ -427,12 +415,17 @@ pub fn plot(args: PlotArgs) -> Result<()> {
             ));
         }
     }
-    // What each method's runs cost: env steps reached and wall time.
+    (md, csv)
+}
+
+/// What each method's runs cost: env steps reached and wall time (a table added to `md`,
+/// and its CSV).
+fn runs_table(methods: &BTreeMap<String, Vec<RunData>>, md: &mut String) -> String {
     md.push_str("\nThe runs: env steps of their last row and wall time of training (seconds, summed over restarts).\n\n| method | seeds | env steps | wall time, mean | wall time, min-max |\n|---|---|---|---|---|\n");
     let mut runs_csv = String::from(
         "method,seeds,env_steps_min,env_steps_max,wall_s_mean,wall_s_min,wall_s_max\n",
     );
-    for (method, runs) in &methods {
+    for (method, runs) in methods {
         let steps =
             |f: fn(u64, u64) -> u64| runs.iter().map(|r| r.last_steps).reduce(f).unwrap_or(0);
         let (lo, hi) = (steps(u64::min), steps(u64::max));
@@ -461,6 +454,58 @@ pub fn plot(args: PlotArgs) -> Result<()> {
         md.push_str(&format!("| {method} | {n} | {range} | {md_wall} |\n"));
         runs_csv.push_str(&format!("{method},{n},{lo},{hi},{csv_wall}\n"));
     }
+    runs_csv
+}
+
+pub fn plot(args: PlotArgs) -> Result<()> {
+    let out = args.out.clone().unwrap_or_else(|| args.dir.clone());
+    // Column prefix, file prefix, what the figures show, the column counting episodes.
+    let (prefix, file, what, episodes) = if args.training {
+        ("", "training_", "training episodes", "episodes")
+    } else if args.sampled {
+        (
+            "eval_sampled_",
+            "sampled_",
+            "evaluation, sampled actions",
+            "eval_episodes",
+        )
+    } else {
+        ("eval_", "", "evaluation", "eval_episodes")
+    };
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let methods = read_methods(&args, prefix, episodes)?;
+    let curves = mean_curves(&methods, &args, what)?;
+    pbrl_actor::render::load_font()?;
+    let (xdesc, xfile) = match args.x {
+        XAxis::EnvSteps => ("env steps", ""),
+        XAxis::Labels => ("labels answered", "_vs_labels"),
+    };
+    for (i, (column, title, ylabel)) in FIGURES.iter().enumerate() {
+        let path = out.join(format!("{file}{column}{xfile}.png"));
+        draw(
+            &path,
+            &format!("{title} ({what})"),
+            ylabel,
+            xdesc,
+            i,
+            i == 1,
+            &curves,
+        )?;
+        println!("wrote {}", path.display());
+    }
+    // Any other column, one figure each.
+    for column in &args.columns {
+        let extra = extra_curves(&methods, column, args.x);
+        if extra.is_empty() {
+            eprintln!("no run has values of {column}");
+            continue;
+        }
+        let path = out.join(format!("{column}{xfile}.png"));
+        draw(&path, column, column, xdesc, 0, false, &extra)?;
+        println!("wrote {}", path.display());
+    }
+    let (mut md, csv) = summary(&methods, &curves, &args, what);
+    let runs_csv = runs_table(&methods, &mut md);
     for (name, text) in [
         ("summary.md", &md),
         ("summary.csv", &csv),

@@ -424,46 +424,16 @@ impl WorldConfig {
 
     /// Check every field that could break the world; the error names the field and value.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        fn positive(field: &str, v: f32) -> Result<(), ConfigError> {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(ConfigError::invalid(
-                    field,
-                    v,
-                    "must be a finite number > 0",
-                ))
-            }
-        }
-        fn non_negative(field: &str, v: f32) -> Result<(), ConfigError> {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(ConfigError::invalid(
-                    field,
-                    v,
-                    "must be a finite number >= 0",
-                ))
-            }
-        }
-        fn finite(field: &str, vs: &[f32]) -> Result<(), ConfigError> {
-            match vs.iter().find(|v| !v.is_finite()) {
-                Some(v) => Err(ConfigError::invalid(field, v, "must be finite")),
-                None => Ok(()),
-            }
-        }
-        fn range(field: &str, r: [f32; 2]) -> Result<(), ConfigError> {
-            finite(field, &r)?;
-            if r[0] <= r[1] {
-                Ok(())
-            } else {
-                Err(ConfigError::invalid(
-                    field,
-                    format!("{r:?}"),
-                    "must be [low, high] with low <= high",
-                ))
-            }
-        }
+        self.check_counts()?;
+        self.check_food()?;
+        self.check_arm()?;
+        self.check_spoon()?;
+        self.check_scene()?;
+        self.check_profile()
+    }
+
+    /// The counts: food, substeps, iterations, steps, tries.
+    fn check_counts(&self) -> Result<(), ConfigError> {
         if self.food_count == 0 {
             return Err(ConfigError::invalid(
                 "food_count",
@@ -500,6 +470,11 @@ impl WorldConfig {
                 "must be at most 100000",
             ));
         }
+        Ok(())
+    }
+
+    /// The food and gravity.
+    fn check_food(&self) -> Result<(), ConfigError> {
         positive("substep_dt", self.substep_dt)?;
         positive("food_radius", self.food_radius)?;
         positive("food_mass", self.food_mass)?;
@@ -514,6 +489,11 @@ impl WorldConfig {
                 "must be in (0, 1]",
             ));
         }
+        Ok(())
+    }
+
+    /// The arm: its motors, inertias, the spoon's mass and the contacts.
+    fn check_arm(&self) -> Result<(), ConfigError> {
         positive("action_scale", self.action_scale)?;
         positive("motor_gain", self.motor_gain)?;
         positive("motor_max_force", self.motor_max_force)?;
@@ -544,6 +524,11 @@ impl WorldConfig {
         }
         non_negative("contact_erp", self.contact_erp)?;
         non_negative("contact_slop", self.contact_slop)?;
+        Ok(())
+    }
+
+    /// IK tolerances and the spoon's shape.
+    fn check_spoon(&self) -> Result<(), ConfigError> {
         positive("ik_pos_tol", self.ik_pos_tol)?;
         positive("ik_rot_tol", self.ik_rot_tol)?;
         for (i, &v) in self.spoon_bowl_half.iter().enumerate() {
@@ -561,6 +546,11 @@ impl WorldConfig {
                 "food wider than the spoon bowl",
             ));
         }
+        Ok(())
+    }
+
+    /// The person, the furniture and where things start.
+    fn check_scene(&self) -> Result<(), ConfigError> {
         non_negative("start_ee_noise", self.start_ee_noise)?;
         non_negative("bowl_noise", self.bowl_noise)?;
         non_negative("head_angle_deg", self.head_angle_deg)?;
@@ -588,6 +578,11 @@ impl WorldConfig {
         for (i, &v) in self.table_size.iter().enumerate() {
             positive(&format!("table_size[{i}]"), v)?;
         }
+        Ok(())
+    }
+
+    /// The person's profile: weights, threshold and taste.
+    fn check_profile(&self) -> Result<(), ConfigError> {
         let w = self.profile.weights.as_array();
         finite("profile.weights", &w)?;
         non_negative(
@@ -609,6 +604,47 @@ impl WorldConfig {
             ));
         }
         Ok(())
+    }
+}
+
+fn positive(field: &str, v: f32) -> Result<(), ConfigError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            field,
+            v,
+            "must be a finite number > 0",
+        ))
+    }
+}
+fn non_negative(field: &str, v: f32) -> Result<(), ConfigError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            field,
+            v,
+            "must be a finite number >= 0",
+        ))
+    }
+}
+fn finite(field: &str, vs: &[f32]) -> Result<(), ConfigError> {
+    match vs.iter().find(|v| !v.is_finite()) {
+        Some(v) => Err(ConfigError::invalid(field, v, "must be finite")),
+        None => Ok(()),
+    }
+}
+fn range(field: &str, r: [f32; 2]) -> Result<(), ConfigError> {
+    finite(field, &r)?;
+    if r[0] <= r[1] {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            field,
+            format!("{r:?}"),
+            "must be [low, high] with low <= high",
+        ))
     }
 }
 

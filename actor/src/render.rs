@@ -5,7 +5,8 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector2};
-use pbrl_common::Trajectory;
+use pbrl_common::{Replay, Trajectory};
+use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
@@ -126,6 +127,196 @@ fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing the picture: {e:?}")
 }
 
+/// What a picture of an episode shows, in the world frame.
+struct Picture {
+    /// Furniture first, the person over it, the head last, so nothing hides the face.
+    shapes: Vec<(Owner, Shape)>,
+    arm_start: Vec<Point3<f64>>,
+    arm_end: Vec<Point3<f64>>,
+    spoon_path: Vec<Point3<f64>>,
+    mouth: Point3<f64>,
+    /// Each particle where it ended, and what became of it.
+    food_end: Vec<Point3<f64>>,
+    food_outcome: Vec<u8>,
+}
+
+impl Picture {
+    fn of(rp: &Replay, cfg: &WorldConfig) -> Self {
+        let person = scene::person(rp.large_body);
+        let bowl = rp.bowl.map(f64::from);
+        let mut shapes: Vec<(Owner, Shape)> = scene::furniture(cfg, bowl)
+            .into_iter()
+            .map(|p| (p.owner, p.shape))
+            .collect();
+        shapes.extend(person.parts.iter().map(|p| (p.owner, p.shape)));
+        // NOTE: furniture first, the person over it, the head last, so nothing hides the face.
+        shapes.sort_by_key(|(owner, _)| *owner == Owner::Person);
+        let head = pose(&rp.head[0]);
+        shapes.push((
+            Owner::Person,
+            Shape::Ball {
+                centre: head * Point3::from(person.head_centre_local),
+                radius: person.head_radius,
+            },
+        ));
+        let arm = Arm::baxter();
+        let base = pose(&rp.base);
+        let arm_points = |q: &[f32; 7]| -> Vec<Point3<f64>> {
+            let f = arm.frames(&base, &q.map(f64::from));
+            let mut pts: Vec<Point3<f64>> = f
+                .joints
+                .iter()
+                .map(|j| Point3::from(j.translation.vector))
+                .collect();
+            pts.push(Point3::from(f.ee.translation.vector));
+            pts.push(Point3::from(f.spoon.translation.vector));
+            pts
+        };
+        let arm_start = arm_points(&rp.joints[0]);
+        let arm_end = arm_points(rp.joints.last().expect("checked non-empty above"));
+        let spoon_path: Vec<Point3<f64>> = rp
+            .spoon
+            .iter()
+            .map(|p| Point3::new(p[0], p[1], p[2]).cast())
+            .collect();
+        let mouth = Point3::from(rp.mouth[0].map(f64::from));
+        let n = rp.n_food as usize;
+        let last = rp.food.len() / n.max(1) - 1;
+        let food_end: Vec<Point3<f64>> = (0..n)
+            .map(|k| Point3::from(rp.food[last * n + k].map(f64::from)))
+            .collect();
+        Self {
+            shapes,
+            arm_start,
+            arm_end,
+            spoon_path,
+            mouth,
+            food_end,
+            food_outcome: rp.food_outcome.clone(),
+        }
+    }
+}
+
+/// One view of the picture, at equal scale on both axes.
+fn draw_view(
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
+    view: &View,
+    pic: &Picture,
+) -> Result<()> {
+    // The region of interest: arm, spoon path, head; equal scale on both axes.
+    let mut pts: Vec<(f64, f64)> = pic.spoon_path.iter().map(|p| view.project(p)).collect();
+    pts.extend(
+        pic.arm_start
+            .iter()
+            .chain(&pic.arm_end)
+            .map(|p| view.project(p)),
+    );
+    pts.push(view.project(&pic.mouth));
+    pts.push(view.project(&Point3::new(0.0, 0.0, 0.4)));
+    let (mut x0, mut x1, mut y0, mut y1) = pts.iter().fold(
+        (f64::MAX, f64::MIN, f64::MAX, f64::MIN),
+        |(a, b, c, d), p| (a.min(p.0), b.max(p.0), c.min(p.1), d.max(p.1)),
+    );
+    let pad = 0.12;
+    (x0, x1, y0, y1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
+    let (w, h) = area.dim_in_pixel();
+    let (pw, ph) = (w as f64 - 90.0, h as f64 - 90.0);
+    let scale = (pw / (x1 - x0)).min(ph / (y1 - y0));
+    let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+    let (hw, hh) = (pw / scale / 2.0, ph / scale / 2.0);
+    let mut chart = ChartBuilder::on(area)
+        .caption(view.name, ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(cx - hw..cx + hw, cy - hh..cy + hh)
+        .map_err(draw_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(view.labels.0)
+        .y_desc(view.labels.1)
+        .light_line_style(RGBColor(240, 240, 240))
+        .draw()
+        .map_err(draw_err)?;
+    for (owner, shape) in &pic.shapes {
+        let fill = match owner {
+            Owner::Person => RGBColor(246, 214, 190),
+            Owner::Furniture => RGBColor(205, 205, 205),
+        };
+        let pts = outline(view, shape);
+        chart
+            .draw_series(std::iter::once(Polygon::new(pts.clone(), fill.filled())))
+            .map_err(draw_err)?;
+        let mut closed = pts;
+        closed.push(closed[0]);
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                closed,
+                RGBColor(120, 120, 120),
+            )))
+            .map_err(draw_err)?;
+    }
+    for (pts, colour, label) in [
+        (&pic.arm_start, RGBColor(170, 170, 170), "arm at the start"),
+        (&pic.arm_end, RGBColor(60, 60, 60), "arm at the end"),
+    ] {
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                pts.iter().map(|p| view.project(p)).collect::<Vec<_>>(),
+                colour.stroke_width(4),
+            )))
+            .map_err(draw_err)?
+            .label(label)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(4))
+            });
+    }
+    chart
+        .draw_series(LineSeries::new(
+            pic.spoon_path.iter().map(|p| view.project(p)),
+            BLUE.stroke_width(2),
+        ))
+        .map_err(draw_err)?
+        .label("spoon path")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart
+        .draw_series(std::iter::once(Circle::new(
+            view.project(&pic.mouth),
+            7,
+            RED.stroke_width(3),
+        )))
+        .map_err(draw_err)?
+        .label("mouth target")
+        .legend(|(x, y)| Circle::new((x + 10, y), 6, RED.stroke_width(3)));
+    for (state, colour, label) in [
+        (0u8, RGBColor(230, 140, 0), "food left on the spoon"),
+        (1, RGBColor(0, 150, 60), "food eaten"),
+        (2, RGBColor(200, 0, 200), "food spilled"),
+    ] {
+        let pts: Vec<(f64, f64)> = pic
+            .food_end
+            .iter()
+            .zip(&pic.food_outcome)
+            .filter(|(_, s)| **s == state)
+            .map(|(p, _)| view.project(p))
+            .collect();
+        chart
+            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
+            .map_err(draw_err)?
+            .label(label)
+            .legend(move |(x, y)| Circle::new((x + 10, y), 4, colour.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 14))
+        .draw()
+        .map_err(draw_err)?;
+    Ok(())
+}
+
 /// Draw `t` (a feeding trajectory with replay data) to the PNG `out`.
 pub fn render(t: &Trajectory, cfg: &WorldConfig, controller: &str, out: &Path) -> Result<()> {
     let Some(rp) = &t.replay else {
@@ -135,50 +326,7 @@ pub fn render(t: &Trajectory, cfg: &WorldConfig, controller: &str, out: &Path) -
         bail!("trajectory of seed {} has no steps to draw", t.seed);
     }
     load_font()?;
-    let person = scene::person(rp.large_body);
-    let bowl = rp.bowl.map(f64::from);
-    let mut shapes: Vec<(Owner, Shape)> = scene::furniture(cfg, bowl)
-        .into_iter()
-        .map(|p| (p.owner, p.shape))
-        .collect();
-    shapes.extend(person.parts.iter().map(|p| (p.owner, p.shape)));
-    // NOTE: furniture first, the person over it, the head last, so nothing hides the face.
-    shapes.sort_by_key(|(owner, _)| *owner == Owner::Person);
-    let head = pose(&rp.head[0]);
-    shapes.push((
-        Owner::Person,
-        Shape::Ball {
-            centre: head * Point3::from(person.head_centre_local),
-            radius: person.head_radius,
-        },
-    ));
-    let arm = Arm::baxter();
-    let base = pose(&rp.base);
-    let arm_points = |q: &[f32; 7]| -> Vec<Point3<f64>> {
-        let f = arm.frames(&base, &q.map(f64::from));
-        let mut pts: Vec<Point3<f64>> = f
-            .joints
-            .iter()
-            .map(|j| Point3::from(j.translation.vector))
-            .collect();
-        pts.push(Point3::from(f.ee.translation.vector));
-        pts.push(Point3::from(f.spoon.translation.vector));
-        pts
-    };
-    let arm_start = arm_points(&rp.joints[0]);
-    let arm_end = arm_points(rp.joints.last().expect("checked non-empty above"));
-    let spoon_path: Vec<Point3<f64>> = rp
-        .spoon
-        .iter()
-        .map(|p| Point3::new(p[0], p[1], p[2]).cast())
-        .collect();
-    let mouth = Point3::from(rp.mouth[0].map(f64::from));
-    let n = rp.n_food as usize;
-    let last = rp.food.len() / n.max(1) - 1;
-    let food_end: Vec<Point3<f64>> = (0..n)
-        .map(|k| Point3::from(rp.food[last * n + k].map(f64::from)))
-        .collect();
-
+    let pic = Picture::of(rp, cfg);
     let root = BitMapBackend::new(out, (1500, 760)).into_drawing_area();
     root.fill(&WHITE).map_err(draw_err)?;
     let (top, body) = root.split_vertically(60);
@@ -200,114 +348,8 @@ pub fn render(t: &Trajectory, cfg: &WorldConfig, controller: &str, out: &Path) -
         (20, 20),
     )
     .map_err(draw_err)?;
-    let views = VIEWS;
-    let panels = body.split_evenly((1, 2));
-    for (area, view) in panels.iter().zip(views) {
-        // The region of interest: arm, spoon path, head; equal scale on both axes.
-        let mut pts: Vec<(f64, f64)> = spoon_path.iter().map(|p| view.project(p)).collect();
-        pts.extend(arm_start.iter().chain(&arm_end).map(|p| view.project(p)));
-        pts.push(view.project(&mouth));
-        pts.push(view.project(&Point3::new(0.0, 0.0, 0.4)));
-        let (mut x0, mut x1, mut y0, mut y1) = pts.iter().fold(
-            (f64::MAX, f64::MIN, f64::MAX, f64::MIN),
-            |(a, b, c, d), p| (a.min(p.0), b.max(p.0), c.min(p.1), d.max(p.1)),
-        );
-        let pad = 0.12;
-        (x0, x1, y0, y1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
-        let (w, h) = area.dim_in_pixel();
-        let (pw, ph) = (w as f64 - 90.0, h as f64 - 90.0);
-        let scale = (pw / (x1 - x0)).min(ph / (y1 - y0));
-        let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-        let (hw, hh) = (pw / scale / 2.0, ph / scale / 2.0);
-        let mut chart = ChartBuilder::on(area)
-            .caption(view.name, ("sans-serif", 20))
-            .margin(10)
-            .x_label_area_size(40)
-            .y_label_area_size(50)
-            .build_cartesian_2d(cx - hw..cx + hw, cy - hh..cy + hh)
-            .map_err(draw_err)?;
-        chart
-            .configure_mesh()
-            .x_desc(view.labels.0)
-            .y_desc(view.labels.1)
-            .light_line_style(RGBColor(240, 240, 240))
-            .draw()
-            .map_err(draw_err)?;
-        for (owner, shape) in &shapes {
-            let fill = match owner {
-                Owner::Person => RGBColor(246, 214, 190),
-                Owner::Furniture => RGBColor(205, 205, 205),
-            };
-            let pts = outline(&view, shape);
-            chart
-                .draw_series(std::iter::once(Polygon::new(pts.clone(), fill.filled())))
-                .map_err(draw_err)?;
-            let mut closed = pts;
-            closed.push(closed[0]);
-            chart
-                .draw_series(std::iter::once(PathElement::new(
-                    closed,
-                    RGBColor(120, 120, 120),
-                )))
-                .map_err(draw_err)?;
-        }
-        for (pts, colour, label) in [
-            (&arm_start, RGBColor(170, 170, 170), "arm at the start"),
-            (&arm_end, RGBColor(60, 60, 60), "arm at the end"),
-        ] {
-            chart
-                .draw_series(std::iter::once(PathElement::new(
-                    pts.iter().map(|p| view.project(p)).collect::<Vec<_>>(),
-                    colour.stroke_width(4),
-                )))
-                .map_err(draw_err)?
-                .label(label)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(4))
-                });
-        }
-        chart
-            .draw_series(LineSeries::new(
-                spoon_path.iter().map(|p| view.project(p)),
-                BLUE.stroke_width(2),
-            ))
-            .map_err(draw_err)?
-            .label("spoon path")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-        chart
-            .draw_series(std::iter::once(Circle::new(
-                view.project(&mouth),
-                7,
-                RED.stroke_width(3),
-            )))
-            .map_err(draw_err)?
-            .label("mouth target")
-            .legend(|(x, y)| Circle::new((x + 10, y), 6, RED.stroke_width(3)));
-        for (state, colour, label) in [
-            (0u8, RGBColor(230, 140, 0), "food left on the spoon"),
-            (1, RGBColor(0, 150, 60), "food eaten"),
-            (2, RGBColor(200, 0, 200), "food spilled"),
-        ] {
-            let pts: Vec<(f64, f64)> = food_end
-                .iter()
-                .zip(&rp.food_outcome)
-                .filter(|(_, s)| **s == state)
-                .map(|(p, _)| view.project(p))
-                .collect();
-            chart
-                .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
-                .map_err(draw_err)?
-                .label(label)
-                .legend(move |(x, y)| Circle::new((x + 10, y), 4, colour.filled()));
-        }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()
-            .map_err(draw_err)?;
+    for (area, view) in body.split_evenly((1, 2)).iter().zip(VIEWS) {
+        draw_view(area, &view, &pic)?;
     }
     root.present()
         .map_err(draw_err)

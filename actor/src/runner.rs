@@ -201,6 +201,41 @@ fn adopt(
     Ok(true)
 }
 
+/// The next version is late (the actor's credit is spent). A weights message lost on the
+/// way is asked for; if the learner answers with the version this actor has, it may be
+/// waiting for trajectories lost on the way: they are sent again (the learner takes each
+/// once). A learner that does not answer (paused, gone) is sent nothing more than its credit
+/// allowed. True when new weights were adopted.
+async fn chase_weights(
+    session: &Session,
+    weights: &mut WeightsClient,
+    policy: &mut Policy,
+    publisher: &mut TrajectoryPublisher,
+    actor: u32,
+) -> Result<bool> {
+    let Some(w) = weights.fetch(session, Duration::from_secs(2)).await? else {
+        tracing::debug!(actor, "the learner does not answer");
+        return Ok(false);
+    };
+    if adopt(policy, &w, publisher, actor)? {
+        tracing::warn!(
+            actor,
+            version = policy.version,
+            "weights arrived only when asked for"
+        );
+        return Ok(true);
+    }
+    let n = publisher.resend().await?;
+    if n > 0 {
+        tracing::debug!(
+            actor,
+            trajectories = n,
+            "no new weights yet; sent the unacknowledged trajectories again"
+        );
+    }
+    Ok(false)
+}
+
 /// Run episodes until `shutdown` resolves or the learner says stop; run evaluation
 /// episodes when the learner asks. Nothing here blocks the bus: every subscription is an
 /// [`Inbox`], drained between episodes and while the actor waits for weights.
@@ -296,25 +331,10 @@ pub async fn run(
                     answer(world.as_mut(), &req, cfg.id, &eval_results).await?;
                 }
                 _ = tokio::time::sleep(retry) => {
-                    // NOTE: the next version is late. A weights message lost on the way is
-                    // asked for; if the learner answers with the version this actor has, it
-                    // may be waiting for trajectories lost on the way: they are sent again
-                    // (the learner takes each once). A learner that does not answer (paused,
-                    // gone) is sent nothing more than its credit allowed.
                     retry = (retry * 2).min(RETRY_MAX);
-                    let Some(w) = weights.fetch(&session, Duration::from_secs(2)).await? else {
-                        tracing::debug!(actor = cfg.id, "the learner does not answer");
-                        continue;
-                    };
-                    if adopt(&mut policy, &w, &mut publisher, cfg.id)? {
-                        tracing::warn!(actor = cfg.id, version = policy.version, "weights arrived only when asked for");
+                    if chase_weights(&session, &mut weights, &mut policy, &mut publisher, cfg.id).await? {
                         on_version = 0;
                         retry = RETRY_FIRST;
-                        continue;
-                    }
-                    let n = publisher.resend().await?;
-                    if n > 0 {
-                        tracing::debug!(actor = cfg.id, trajectories = n, "no new weights yet; sent the unacknowledged trajectories again");
                     }
                 }
             }

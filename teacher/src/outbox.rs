@@ -21,15 +21,17 @@
 //!
 //! One file can hold the outboxes of several teachers (rows are keyed by the teacher's id);
 //! a teacher reads and sends only its own. The human desk keeps its queue in other tables
-//! of the same file ([`crate::human`]).
+//! of the same file, on the same connection ([`crate::file`]): it hands an answer over in
+//! one transaction with [`Outbox::keep_with`].
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use pbrl_common::wire::{now_ms, Answer, AnswerAck, Query};
-use rusqlite::{params, Connection};
+use rusqlite::{params, Transaction};
+
+use crate::file::{code, TeacherFile};
 
 const CREATE: &str = "
 CREATE TABLE IF NOT EXISTS outbox (
@@ -67,49 +69,21 @@ struct Kept {
 
 /// The answers of one teacher, on disk until acknowledged (and after).
 pub struct Outbox {
-    db: Connection,
-    path: PathBuf,
+    file: TeacherFile,
     teacher: String,
     kept: BTreeMap<Key, Kept>,
 }
 
-/// Open a SQLite file (creating it, and its folder) for a store that must survive a power
-/// cut: WAL, and every commit synced. `:memory:` keeps nothing.
-pub fn open_durable(path: &Path, what: &str) -> Result<Connection> {
-    if path.as_os_str() != ":memory:" {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            // NOTE: an in-process teacher may start before the learner makes the run folder.
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("creating the folder of the {what} {}", path.display()))?;
-        }
-    }
-    let db =
-        Connection::open(path).with_context(|| format!("opening the {what} {}", path.display()))?;
-    let context = || format!("setting up the {what} {}", path.display());
-    if path.as_os_str() != ":memory:" {
-        db.pragma_update(None, "journal_mode", "WAL")
-            .with_context(context)?;
-    }
-    db.pragma_update(None, "synchronous", "FULL")
-        .with_context(context)?;
-    Ok(db)
-}
-
-/// The encoding of every query and answer the teacher's file keeps.
-pub(crate) fn code() -> bincode::config::Configuration {
-    bincode::config::standard()
-}
-
 impl Outbox {
-    /// Open teacher `teacher`'s outbox in the file `path` (creating it) and read back what
-    /// it holds.
-    pub fn open(path: &Path, teacher: &str) -> Result<Self> {
-        let db = open_durable(path, "teacher's outbox")?;
-        db.execute_batch(CREATE)
+    /// Open teacher `teacher`'s outbox in the teacher's `file` (creating its table) and
+    /// read back what it holds.
+    pub fn open(file: &TeacherFile, teacher: &str) -> Result<Self> {
+        let path = file.path().to_path_buf();
+        file.lock()
+            .execute_batch(CREATE)
             .with_context(|| format!("setting up the teacher's outbox {}", path.display()))?;
         let mut outbox = Self {
-            db,
-            path: path.to_path_buf(),
+            file: file.clone(),
             teacher: teacher.to_string(),
             kept: BTreeMap::new(),
         };
@@ -120,15 +94,18 @@ impl Outbox {
     }
 
     fn load(&mut self) -> Result<()> {
-        let mut select = self
-            .db
-            .prepare("SELECT query, message, asked_at_ms, acked FROM outbox WHERE teacher = ?1")?;
-        let rows = select
-            .query_map([&self.teacher], |r| {
-                Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
-            })?
-            .collect::<rusqlite::Result<Vec<(i64, Vec<u8>, i64, bool)>>>()?;
-        drop(select);
+        let rows = {
+            let db = self.file.lock();
+            let mut select = db.prepare(
+                "SELECT query, message, asked_at_ms, acked FROM outbox WHERE teacher = ?1",
+            )?;
+            let rows = select
+                .query_map([&self.teacher], |r| {
+                    Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+                })?
+                .collect::<rusqlite::Result<Vec<(i64, Vec<u8>, i64, bool)>>>()?;
+            rows
+        };
         for (query, bytes, asked_at_ms, acked) in rows {
             let (answer, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
                 .with_context(|| format!("the answer to query {query} does not decode"))?;
@@ -145,7 +122,7 @@ impl Outbox {
             tracing::info!(
                 teacher = %self.teacher,
                 unacknowledged = open,
-                outbox = %self.path.display(),
+                outbox = %self.file.path().display(),
                 "the teacher's outbox is back: sending its unacknowledged answers again"
             );
         }
@@ -157,37 +134,57 @@ impl Outbox {
     /// outbox holds it already (then it is not changed); an answer to an older query of the
     /// same id (a learner started over) is replaced.
     pub fn keep(&mut self, a: &Answer, asked_at_ms: u64) -> Result<bool> {
+        self.keep_with(a, asked_at_ms, |_| Ok(()))
+    }
+
+    /// [`Outbox::keep`], with `also` done in the same transaction (the desk takes the
+    /// answer off its own tables there); `also` is done, alone, when the outbox holds the
+    /// answer already.
+    pub fn keep_with(
+        &mut self,
+        a: &Answer,
+        asked_at_ms: u64,
+        also: impl FnOnce(&Transaction<'_>) -> Result<()>,
+    ) -> Result<bool> {
         let k = key(a);
-        if self
+        let held = self
             .kept
             .get(&k)
-            .is_some_and(|k| k.asked_at_ms == asked_at_ms)
+            .is_some_and(|k| k.asked_at_ms == asked_at_ms);
+        let context = || {
+            format!(
+                "keeping the answer to query {} in the outbox {}",
+                a.query,
+                self.file.path().display()
+            )
+        };
+        let bytes = bincode::serde::encode_to_vec(a, code())?;
         {
+            let db = self.file.lock();
+            let tx = db.unchecked_transaction().with_context(context)?;
+            if !held {
+                tx.execute(
+                    "INSERT OR REPLACE INTO outbox
+                     (teacher, query, labeller, repeat, message, asked_at_ms, kept_at_ms)
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                    params![
+                        self.teacher,
+                        a.query as i64,
+                        a.labeller,
+                        a.repeat,
+                        bytes,
+                        asked_at_ms as i64,
+                        now_ms() as i64
+                    ],
+                )
+                .with_context(context)?;
+            }
+            also(&tx)?;
+            tx.commit().with_context(context)?;
+        }
+        if held {
             return Ok(false);
         }
-        let bytes = bincode::serde::encode_to_vec(a, code())?;
-        self.db
-            .execute(
-                "INSERT OR REPLACE INTO outbox
-                 (teacher, query, labeller, repeat, message, asked_at_ms, kept_at_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-                params![
-                    self.teacher,
-                    a.query as i64,
-                    a.labeller,
-                    a.repeat,
-                    bytes,
-                    asked_at_ms as i64,
-                    now_ms() as i64
-                ],
-            )
-            .with_context(|| {
-                format!(
-                    "keeping the answer to query {} in the outbox {}",
-                    a.query,
-                    self.path.display()
-                )
-            })?;
         let kept = Kept {
             answer: a.clone(),
             asked_at_ms,
@@ -250,7 +247,8 @@ impl Outbox {
         if keys.is_empty() {
             return Ok(0);
         }
-        let tx = self.db.unchecked_transaction()?;
+        let db = self.file.lock();
+        let tx = db.unchecked_transaction()?;
         for (query, labeller, repeat) in &keys {
             tx.execute(
                 "UPDATE outbox SET acked = 1
@@ -262,9 +260,10 @@ impl Outbox {
             format!(
                 "marking {} answers acknowledged in the outbox {}",
                 keys.len(),
-                self.path.display()
+                self.file.path().display()
             )
         })?;
+        drop(db);
         for k in &keys {
             if let Some(kept) = self.kept.get_mut(k) {
                 kept.acked = true;
@@ -293,7 +292,7 @@ mod tests {
     fn an_outbox_in_a_folder_not_made_yet_is_opened() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run-not-made-yet").join("teacher.sqlite");
-        Outbox::open(&path, "t-0").unwrap();
+        Outbox::open(&TeacherFile::open(&path).unwrap(), "t-0").unwrap();
         assert!(path.exists());
     }
 
@@ -344,7 +343,7 @@ mod tests {
         let path = dir.path().join("t.sqlite");
         let first = Answer::scripted(1, Preference::First, "oracle", "t-0", 3);
         {
-            let mut o = Outbox::open(&path, "t-0").unwrap();
+            let mut o = Outbox::open(&TeacherFile::open(&path).unwrap(), "t-0").unwrap();
             assert!(o.keep(&first, 10).unwrap());
             assert!(!o.keep(&first, 10).unwrap(), "kept once");
             let second = Answer::scripted(2, Preference::Second, "oracle", "t-0", 3);
@@ -359,10 +358,10 @@ mod tests {
             // NOTE: dropped with query 1 unacknowledged: a teacher killed.
         }
         // Another teacher's outbox in the same file is apart.
-        let mut other = Outbox::open(&path, "t-1").unwrap();
+        let mut other = Outbox::open(&TeacherFile::open(&path).unwrap(), "t-1").unwrap();
         assert_eq!(other.unacknowledged(), 0);
         assert_eq!(other.again(&asked(1, 10)), None);
-        let mut o = Outbox::open(&path, "t-0").unwrap();
+        let mut o = Outbox::open(&TeacherFile::open(&path).unwrap(), "t-0").unwrap();
         assert_eq!(o.unacknowledged(), 1);
         // Sent at once after a restart, then every resend interval.
         assert_eq!(o.due(Duration::from_secs(60)), vec![first.clone()]);
@@ -380,7 +379,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("t.sqlite");
         let old = Answer::scripted(1, Preference::First, "oracle", "t-0", 3);
-        let mut o = Outbox::open(&path, "t-0").unwrap();
+        let mut o = Outbox::open(&TeacherFile::open(&path).unwrap(), "t-0").unwrap();
         o.keep(&old, 10).unwrap();
         o.acknowledged(&ack(&[1], &[])).unwrap();
         // Query 1 of a learner started over (asked later): not the old answer.
@@ -389,7 +388,7 @@ mod tests {
         let new = Answer::scripted(1, Preference::Second, "oracle", "t-0", 3);
         assert!(o.keep(&new, q.asked_at_ms).unwrap());
         drop(o);
-        let mut o = Outbox::open(&path, "t-0").unwrap();
+        let mut o = Outbox::open(&TeacherFile::open(&path).unwrap(), "t-0").unwrap();
         assert_eq!(o.again(&q), Some(new));
         assert_eq!(o.again(&asked(1, 10)), None);
     }
@@ -397,7 +396,11 @@ mod tests {
     #[test]
     fn a_persons_answer_and_repeats_are_acknowledged_apart() {
         let dir = tempfile::tempdir().unwrap();
-        let mut o = Outbox::open(&dir.path().join("t.sqlite"), "t-0").unwrap();
+        let mut o = Outbox::open(
+            &TeacherFile::open(&dir.path().join("t.sqlite")).unwrap(),
+            "t-0",
+        )
+        .unwrap();
         for a in [
             person(5, "ann", false),
             person(5, "bob", true),

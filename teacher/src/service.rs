@@ -19,6 +19,7 @@ use pbrl_common::Keys;
 use zenoh::qos::Priority;
 use zenoh::Session;
 
+use crate::file::TeacherFile;
 use crate::human::{Desk, HumanConfig};
 use crate::outbox::Outbox;
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
@@ -70,7 +71,8 @@ pub async fn serve(
     shutdown: impl Future<Output = ()>,
 ) -> Result<TeacherSummary> {
     let teacher = AtOnce::new(judge, &cfg.id);
-    teach(cfg, teacher, session, shutdown).await
+    let file = TeacherFile::open(&cfg.state)?;
+    teach(cfg, teacher, &file, session, shutdown).await
 }
 
 /// Serve people: the labelling page on `http`, the queue on `human`'s desk, until
@@ -85,9 +87,8 @@ pub async fn run_human(
     shutdown: impl Future<Output = ()>,
 ) -> Result<TeacherSummary> {
     check_teacher_id("teacher id", &cfg.id)?;
-    let desk = Arc::new(Mutex::new(Desk::open(
-        human, &cfg.state, &cfg.run, &cfg.id,
-    )?));
+    let file = TeacherFile::open(&cfg.state)?;
+    let desk = Arc::new(Mutex::new(Desk::open(human, &file, &cfg.run, &cfg.id)?));
     let bound = web::bind(&http).await?;
     let addr = bound.listener.local_addr()?;
     let page = Web::new(desk.clone(), world, http.token.clone());
@@ -101,7 +102,7 @@ pub async fn run_human(
         "labelling page on {}://{addr}/",
         http.scheme()
     );
-    let summary = teach(cfg, desk, session, shutdown).await;
+    let summary = teach(cfg, desk, &file, session, shutdown).await;
     let _ = stop_http.send(());
     match server.await {
         Ok(Err(e)) => tracing::warn!(error = %e, "the labelling page failed"),
@@ -152,16 +153,18 @@ impl TeacherBus {
     }
 }
 
-/// Answer queries with `teacher` until `shutdown`: every answer kept in the outbox on
-/// `cfg.state` before it is sent, and sent again every `cfg.resend` until acknowledged.
+/// Answer queries with `teacher` until `shutdown`: every answer kept in the outbox in the
+/// teacher's `file` (`cfg.state`) before it is sent, and sent again every `cfg.resend`
+/// until acknowledged.
 pub async fn teach(
     cfg: TeacherConfig,
     teacher: impl Teacher,
+    file: &TeacherFile,
     session: Session,
     shutdown: impl Future<Output = ()>,
 ) -> Result<TeacherSummary> {
     check_teacher_id("teacher id", &cfg.id)?;
-    let mut served = Served::new(teacher, Outbox::open(&cfg.state, &cfg.id)?);
+    let mut served = Served::new(teacher, Outbox::open(file, &cfg.id)?);
     let mut bus = TeacherBus::open(&session, &cfg).await?;
     let kind = served.teacher.kind();
     tracing::info!(run = %cfg.run, id = %cfg.id, %kind, "teacher ready");

@@ -262,7 +262,7 @@ mod tests {
         let oracle = Scripted::new(ScriptedConfig::of(TeacherKind::Oracle, 0)).unwrap();
         Served::new(
             AtOnce::new(Counting(oracle, 0), "oracle-0"),
-            Outbox::open(path, "oracle-0").unwrap(),
+            Outbox::open(&crate::file::TeacherFile::open(path).unwrap(), "oracle-0").unwrap(),
         )
     }
 

@@ -22,17 +22,21 @@
 //!   a person never sees the ground truth.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use pbrl_common::wire::{check_labeller, now_ms, Answer, LearnerStatus, Preference, Query};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rusqlite::{params, Connection};
 use serde::{Deserialize, Serialize};
 
-use crate::outbox::{self, code, Outbox};
+use crate::file::TeacherFile;
+use crate::outbox::{self, Outbox};
+use store::DeskStore;
+
+mod store;
+#[cfg(test)]
+pub(crate) mod tests;
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
 use crate::teacher::Teacher;
 
@@ -151,7 +155,7 @@ pub struct Desk {
     cfg: HumanConfig,
     run: String,
     teacher_id: String,
-    db: Connection,
+    store: DeskStore,
     /// Every query still needed: open, answered and still on the desk, or to be repeated.
     queries: BTreeMap<u64, Arc<Query>>,
     /// Queries answered (by anyone), so not open.
@@ -168,50 +172,6 @@ pub struct Desk {
     training: bool,
 }
 
-const CREATE: &str = "
-CREATE TABLE IF NOT EXISTS queries (id INTEGER PRIMARY KEY, message BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS answers (
-    query INTEGER NOT NULL,
-    labeller TEXT NOT NULL,
-    repeat INTEGER NOT NULL,
-    message BLOB NOT NULL,
-    given_at_ms INTEGER NOT NULL,
-    PRIMARY KEY (query, labeller, repeat)
-);
-CREATE TABLE IF NOT EXISTS leases (
-    query INTEGER PRIMARY KEY,
-    labeller TEXT NOT NULL,
-    at_ms INTEGER NOT NULL
-);
-CREATE TABLE IF NOT EXISTS checks (
-    query INTEGER NOT NULL,
-    labeller TEXT NOT NULL,
-    due_after INTEGER NOT NULL,
-    PRIMARY KEY (query, labeller)
-);
-CREATE TABLE IF NOT EXISTS labellers (name TEXT PRIMARY KEY, answered INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS shown (
-    query INTEGER NOT NULL,
-    labeller TEXT NOT NULL,
-    env_steps INTEGER NOT NULL,
-    at_ms INTEGER NOT NULL,
-    PRIMARY KEY (query, labeller)
-);
-";
-
-/// A query as the desk keeps it: this build's layout, or the layout before the withdrawal
-/// step (which an older build wrote), read as never withdrawn.
-fn stored_query(bytes: &[u8]) -> Result<Query> {
-    if let Ok((q, n)) = bincode::serde::decode_from_slice::<Query, _>(bytes, code()) {
-        if n == bytes.len() {
-            return Ok(q);
-        }
-    }
-    let (q, _): (pbrl_common::wire::v8::Query, usize) =
-        bincode::serde::decode_from_slice(bytes, code())?;
-    Ok(q.upgrade())
-}
-
 /// A labeller's name as the wire checks it, and not blank.
 fn check_name(labeller: &str) -> Result<(), Refused> {
     check_labeller("labeller", labeller).map_err(|e| Refused::Invalid(e.to_string()))?;
@@ -221,27 +181,16 @@ fn check_name(labeller: &str) -> Result<(), Refused> {
     Ok(())
 }
 
-/// Every row of `sql`, each as a tuple of its columns.
-fn all_rows<T>(db: &Connection, sql: &str) -> rusqlite::Result<Vec<T>>
-where
-    T: for<'a> TryFrom<&'a rusqlite::Row<'a>, Error = rusqlite::Error>,
-{
-    db.prepare(sql)?
-        .query_map([], |r| T::try_from(r))?
-        .collect()
-}
-
 impl Desk {
-    /// Open the desk in the teacher's file `path` (creating it) and read back what it holds.
-    pub fn open(cfg: HumanConfig, path: &Path, run: &str, teacher_id: &str) -> Result<Self> {
+    /// Open the desk in the teacher's `file` (making its tables) and read back what it
+    /// holds.
+    pub fn open(cfg: HumanConfig, file: &TeacherFile, run: &str, teacher_id: &str) -> Result<Self> {
         cfg.validate()?;
-        let db = outbox::open_durable(path, "teacher's queue")?;
-        db.execute_batch(CREATE)
-            .with_context(|| format!("setting up the teacher's queue {}", path.display()))?;
+        let (store, loaded) = DeskStore::open(file)?;
         let mut desk = Self {
             run: run.into(),
             teacher_id: teacher_id.into(),
-            db,
+            store,
             queries: BTreeMap::new(),
             answered: Default::default(),
             leases: HashMap::new(),
@@ -254,57 +203,42 @@ impl Desk {
             training: false,
             cfg,
         };
-        desk.load()
-            .with_context(|| format!("reading the teacher's queue {}", path.display()))?;
+        desk.load(loaded);
         Ok(desk)
     }
 
-    fn load(&mut self) -> Result<()> {
-        let rows: Vec<(i64, Vec<u8>)> =
-            all_rows(&self.db, "SELECT id, message FROM queries ORDER BY id")?;
-        for (id, bytes) in rows {
-            let q = stored_query(&bytes).with_context(|| format!("query {id} does not decode"))?;
+    fn load(&mut self, loaded: store::Loaded) {
+        for q in loaded.queries {
             self.queries.insert(q.id, Arc::new(q));
         }
-        let rows: Vec<(Vec<u8>, i64)> =
-            all_rows(&self.db, "SELECT message, given_at_ms FROM answers")?;
-        for (bytes, at) in rows {
-            let (a, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
-                .context("an answer does not decode")?;
+        for (a, given_at_ms) in loaded.answers {
             if !a.repeat {
                 self.answered.insert(a.query);
             }
             self.given.insert(
-                (a.query, a.labeller.clone(), a.repeat),
+                outbox::key(&a),
                 Given {
                     answer: a,
-                    given_at_ms: at as u64,
+                    given_at_ms,
                 },
             );
         }
-        let rows: Vec<(i64, String, i64)> =
-            all_rows(&self.db, "SELECT query, labeller, at_ms FROM leases")?;
         // NOTE: a pair on someone's open page stays theirs across a restart.
-        self.leases = rows
-            .into_iter()
-            .map(|(q, who, at)| (q as u64, (who, at as u64)))
+        self.leases = (loaded.leases.into_iter())
+            .map(|(q, who, at)| (q, (who, at)))
             .collect();
-        let rows: Vec<(i64, String, i64)> =
-            all_rows(&self.db, "SELECT query, labeller, due_after FROM checks")?;
-        self.checks = rows
-            .into_iter()
+        self.checks = (loaded.checks.into_iter())
             .map(|(query, labeller, due_after)| Check {
-                query: query as u64,
+                query,
                 labeller,
-                due_after: due_after as u64,
+                due_after,
             })
             .collect();
         // NOTE: a repeat is planned only on a query's answer (and withdrawn with it), so a
         // query with repeats to ask is answered, even once that answer has left the disk.
         self.answered.extend(self.checks.iter().map(|c| c.query));
-        let rows: Vec<(String, i64)> = all_rows(&self.db, "SELECT name, answered FROM labellers")?;
-        for (name, total) in rows {
-            self.people.entry(name).or_default().total = total as u64;
+        for (name, total) in loaded.labellers {
+            self.people.entry(name).or_default().total = total;
         }
         if !self.queries.is_empty() || !self.given.is_empty() {
             tracing::info!(
@@ -314,7 +248,6 @@ impl Desk {
                 "the teacher's queue is back"
             );
         }
-        Ok(())
     }
 
     /// Queries waiting for a person's answer.
@@ -336,13 +269,7 @@ impl Desk {
         {
             return Ok(());
         }
-        let bytes = bincode::serde::encode_to_vec(&q, code())?;
-        self.db
-            .execute(
-                "INSERT OR IGNORE INTO queries (id, message) VALUES (?1, ?2)",
-                params![q.id as i64, bytes],
-            )
-            .with_context(|| format!("queueing query {}", q.id))?;
+        self.store.queue(&q)?;
         self.queries.insert(q.id, Arc::new(q));
         Ok(())
     }
@@ -364,17 +291,10 @@ impl Desk {
             let answer = self.given[&k].answer.clone();
             // NOTE: the desk keeps a query while an answer to it is on the desk.
             let asked_at_ms = self.queries.get(&k.0).map_or(0, |q| q.asked_at_ms);
-            if outbox.keep(&answer, asked_at_ms)? {
+            // NOTE: one transaction: the answer is on exactly one of the desk and the outbox.
+            if outbox.keep_with(&answer, asked_at_ms, |tx| store::take_off(tx, &k))? {
                 out.push(answer);
             }
-            // NOTE: only once the outbox has committed it: a person's answer is never on
-            // neither disk.
-            self.db
-                .execute(
-                    "DELETE FROM answers WHERE query = ?1 AND labeller = ?2 AND repeat = ?3",
-                    params![k.0 as i64, k.1, k.2],
-                )
-                .with_context(|| format!("taking the answer to query {} off the desk", k.0))?;
             self.given.remove(&k);
             self.forget_if_done(k.0)?;
         }
@@ -386,8 +306,7 @@ impl Desk {
             || self.given.keys().any(|(q, _, _)| *q == query)
             || self.checks.iter().any(|c| c.query == query);
         if !needed {
-            self.db
-                .execute("DELETE FROM queries WHERE id = ?1", [query as i64])?;
+            self.store.forget(query)?;
             self.queries.remove(&query);
         }
         Ok(())
@@ -415,10 +334,7 @@ impl Desk {
             .map(|q| q.id)
             .collect();
         for id in expired {
-            self.db
-                .execute("DELETE FROM queries WHERE id = ?1", [id as i64])?;
-            self.db
-                .execute("DELETE FROM leases WHERE query = ?1", [id as i64])?;
+            self.store.forget(id)?;
             self.queries.remove(&id);
             self.leases.remove(&id);
         }
@@ -511,22 +427,10 @@ impl Desk {
             return Ok(None);
         };
         if !repeat && self.leases.get(&id).is_none_or(|(who, _)| who != labeller) {
+            self.store
+                .lease(id, labeller, now, self.learner_steps())
+                .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e:#}")))?;
             self.leases.insert(id, (labeller.to_string(), now));
-            self.db
-                .execute(
-                    "INSERT OR REPLACE INTO leases (query, labeller, at_ms) VALUES (?1, ?2, ?3)",
-                    params![id as i64, labeller, now as i64],
-                )
-                .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e}")))?;
-            // The first showing to this person, with where the learner stood (provenance:
-            // how old the pair was when the person saw it).
-            self.db
-                .execute(
-                    "INSERT OR IGNORE INTO shown (query, labeller, env_steps, at_ms)
-                     VALUES (?1, ?2, ?3, ?4)",
-                    params![id as i64, labeller, self.learner_steps() as i64, now as i64],
-                )
-                .map_err(|e| Refused::Failed(format!("noting the showing failed: {e}")))?;
         }
         Ok(Some(Shown {
             query: self.queries[&id].clone(),
@@ -551,7 +455,8 @@ impl Desk {
         let repeat = check.is_some();
         let a = self.person_answer(labeller, query, repeat, choice, took_ms, replays);
         let now = now_ms();
-        self.store(&a, now)
+        self.store
+            .answer(&a, now)
             .map_err(|e| Refused::Failed(format!("storing the answer failed: {e:#}")))?;
         if let Some(k) = check {
             self.checks.remove(k);
@@ -646,39 +551,6 @@ impl Desk {
         }
     }
 
-    /// Write a person's answer to the desk in one transaction: the answer, its lease or
-    /// its check gone, their count one up.
-    fn store(&self, a: &Answer, now: u64) -> Result<()> {
-        let (query, labeller) = (a.query as i64, a.labeller.as_str());
-        let tx = self.db.unchecked_transaction()?;
-        tx.execute(
-            "INSERT INTO answers (query, labeller, repeat, message, given_at_ms)
-             VALUES (?1, ?2, ?3, ?4, ?5)",
-            params![
-                query,
-                labeller,
-                a.repeat,
-                bincode::serde::encode_to_vec(a, code())?,
-                now as i64
-            ],
-        )?;
-        if a.repeat {
-            tx.execute(
-                "DELETE FROM checks WHERE query = ?1 AND labeller = ?2",
-                params![query, labeller],
-            )?;
-        } else {
-            tx.execute("DELETE FROM leases WHERE query = ?1", [query])?;
-        }
-        tx.execute(
-            "INSERT INTO labellers (name, answered) VALUES (?1, 1)
-             ON CONFLICT (name) DO UPDATE SET answered = answered + 1",
-            [labeller],
-        )?;
-        tx.commit()?;
-        Ok(())
-    }
-
     fn plan_repeats(&mut self, query: u64, labeller: &str, answered: u64) -> Result<()> {
         if self.cfg.repeat_share <= 0.0 || !self.rng.random_bool(self.cfg.repeat_share) {
             return Ok(());
@@ -696,10 +568,7 @@ impl Desk {
             plan.push((other.clone(), p.total));
         }
         for (who, due_after) in plan {
-            self.db.execute(
-                "INSERT OR IGNORE INTO checks (query, labeller, due_after) VALUES (?1, ?2, ?3)",
-                params![query as i64, who, due_after as i64],
-            )?;
+            self.store.plan_check(query, &who, due_after)?;
             self.checks.push(Check {
                 query,
                 labeller: who,
@@ -725,28 +594,7 @@ impl Desk {
             return Err(Refused::NothingToUndo);
         }
         let (query, _, repeat) = k.clone();
-        let undone = (|| -> Result<()> {
-            let tx = self.db.unchecked_transaction()?;
-            tx.execute(
-                "DELETE FROM answers WHERE query = ?1 AND labeller = ?2 AND repeat = ?3",
-                params![query as i64, labeller, repeat],
-            )?;
-            if repeat {
-                tx.execute(
-                    "INSERT OR IGNORE INTO checks (query, labeller, due_after) VALUES (?1, ?2, 0)",
-                    params![query as i64, labeller],
-                )?;
-            } else {
-                // NOTE: repeats planned on the withdrawn answer go with it.
-                tx.execute("DELETE FROM checks WHERE query = ?1", [query as i64])?;
-            }
-            tx.execute(
-                "UPDATE labellers SET answered = max(answered - 1, 0) WHERE name = ?1",
-                [labeller],
-            )?;
-            tx.commit()?;
-            Ok(())
-        })();
+        let undone = self.store.undo(query, labeller, repeat);
         undone.map_err(|e| Refused::Failed(format!("undoing failed: {e:#}")))?;
         self.given.remove(&k);
         if repeat {
@@ -854,325 +702,5 @@ impl Teacher for Desk {
 
     fn present(&self) -> Vec<String> {
         Desk::present(self)
-    }
-}
-
-#[cfg(test)]
-pub(crate) mod tests {
-    use super::*;
-    use crate::teacher::Served;
-    use pbrl_common::wire::Shown as Side;
-
-    /// A query whose sides' truths are `first` and `second` at every step.
-    pub(crate) fn query(id: u64, first: f32, second: f32) -> Query {
-        let side = |k: u64, r: f32| Side {
-            id: 2 * id + k,
-            seed: id,
-            policy_version: 1,
-            act_dim: 1,
-            actions: vec![0.0; 2],
-            truth: vec![r, r],
-            replay: None,
-            start: 0,
-            len: 2,
-        };
-        Query {
-            id,
-            session: 1,
-            asked_at_ms: 1,
-            expires_at_ms: 0,
-            first: side(0, first),
-            second: side(1, second),
-            r_avg: None,
-            withdraw_at_steps: 0,
-        }
-    }
-
-    /// The desk served as the teacher loop serves it: with its outbox, in the same file.
-    fn desk(path: &Path, f: impl FnOnce(&mut HumanConfig)) -> Served<Desk> {
-        let mut cfg = HumanConfig {
-            repeat_share: 0.0,
-            ..HumanConfig::default()
-        };
-        f(&mut cfg);
-        let desk = Desk::open(cfg, path, "run", "human-0").unwrap();
-        Served::new(desk, Outbox::open(path, "human-0").unwrap())
-    }
-
-    // NOTE: the tests reach the desk's own state through the loop's wrapper.
-    impl std::ops::Deref for Served<Desk> {
-        type Target = Desk;
-        fn deref(&self) -> &Desk {
-            &self.teacher
-        }
-    }
-
-    impl std::ops::DerefMut for Served<Desk> {
-        fn deref_mut(&mut self) -> &mut Desk {
-            &mut self.teacher
-        }
-    }
-
-    fn ms(ms: u64) -> std::time::Duration {
-        std::time::Duration::from_millis(ms)
-    }
-
-    fn ack(queries: &[u64]) -> pbrl_common::wire::AnswerAck {
-        pbrl_common::wire::AnswerAck {
-            teacher_id: "human-0".into(),
-            queries: queries.to_vec(),
-            repeats: Vec::new(),
-        }
-    }
-
-    /// The choice that means `p` on the pair as shown.
-    fn choose(s: &Shown, p: Preference) -> Choice {
-        match (p, s.swapped) {
-            (Preference::First, false) | (Preference::Second, true) => Choice::Left,
-            (Preference::Second, false) | (Preference::First, true) => Choice::Right,
-            (Preference::Equal, _) => Choice::Equal,
-            (Preference::Skip, _) => Choice::Skip,
-        }
-    }
-
-    #[test]
-    fn a_person_whose_page_is_open_is_present_answering_or_not() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut d = desk(&dir.path().join("h.sqlite"), |_| {});
-        assert!(d.present().is_empty());
-        // Only the status poll of an idle page: no pair asked, no answer given.
-        d.seen("ada");
-        d.seen("not/a name");
-        assert_eq!(d.present(), vec!["ada".to_string()]);
-    }
-
-    #[test]
-    fn a_stale_query_is_offered_to_nobody_new_and_who_holds_it_may_answer() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("h.sqlite");
-        let mut d = desk(&path, |_| {});
-        let status = |env_steps| LearnerStatus {
-            env_steps,
-            ..LearnerStatus::default()
-        };
-        let stale_at = |id, steps| {
-            let mut q = query(id, 1.0, 0.0);
-            q.withdraw_at_steps = steps;
-            q
-        };
-        d.learner_status(status(500));
-        d.receive(stale_at(1, 1_000)).unwrap();
-        d.receive(stale_at(2, 0)).unwrap();
-        let held = d.next("ada", None).unwrap().unwrap();
-        assert_eq!(held.query.id, 1);
-        // The learner has gone past query 1's withdrawal: bob is not offered it (nor would
-        // he be once ada's lease ends), a query already stale on arrival is not queued,
-        // and ada, who holds it, sees it again and answers it.
-        d.learner_status(status(1_500));
-        d.receive(stale_at(3, 1_200)).unwrap();
-        assert_eq!(d.next("bob", None).unwrap().unwrap().query.id, 2);
-        assert!(d.next("cyd", None).unwrap().is_none());
-        assert_eq!(d.next("ada", None).unwrap().unwrap().query.id, 1);
-        d.expire().unwrap();
-        assert!(d.queries.contains_key(&1), "ada still holds it");
-        d.answer("ada", 1, Choice::Left, 800, [1, 1]).unwrap();
-        // Each first showing is kept with where the learner stood.
-        let shown: Vec<(i64, String, i64)> = all_rows(
-            &d.db,
-            "SELECT query, labeller, env_steps FROM shown ORDER BY query, labeller",
-        )
-        .unwrap();
-        assert_eq!(
-            shown,
-            [(1, "ada".to_string(), 500), (2, "bob".to_string(), 1_500)]
-        );
-        // A stale query nobody holds leaves the queue.
-        d.receive(stale_at(4, 2_000)).unwrap();
-        d.learner_status(status(2_000));
-        d.expire().unwrap();
-        assert!(!d.queries.contains_key(&4) && !d.queries.contains_key(&3));
-        // A query an older build kept (no withdrawal step) reads back, never withdrawn.
-        let old = pbrl_common::wire::v8::Query {
-            id: 9,
-            session: 1,
-            asked_at_ms: 1,
-            expires_at_ms: 0,
-            first: query(9, 1.0, 0.0).first,
-            second: query(9, 1.0, 0.0).second,
-            r_avg: None,
-        };
-        let bytes = bincode::serde::encode_to_vec(&old, code()).unwrap();
-        let read = stored_query(&bytes).unwrap();
-        assert_eq!((read.id, read.withdraw_at_steps), (9, 0));
-        let now = stale_at(10, 7);
-        let bytes = bincode::serde::encode_to_vec(&now, code()).unwrap();
-        assert_eq!(stored_query(&bytes).unwrap(), now);
-    }
-
-    #[test]
-    fn sides_undo_leases_and_the_oracle_shadow() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut d = desk(&dir.path().join("t.sqlite"), |c| {
-            c.shadow = true;
-            c.undo_s = 3600;
-        });
-        for id in 1..=40 {
-            d.receive(query(id, id as f32, 0.0)).unwrap();
-        }
-        // Sides are shuffled: over 40 queries both ways occur, and a choice maps back.
-        let shown: Vec<Shown> = (0..40)
-            .map(|_| {
-                let s = d.next("ann", None).unwrap().unwrap();
-                d.leases.remove(&s.query.id);
-                d.answered.insert(s.query.id);
-                s
-            })
-            .collect();
-        assert!(shown.iter().any(|s| s.swapped) && shown.iter().any(|s| !s.swapped));
-        // A repeat's sides are drawn afresh: over 40 queries, some differ from the first time.
-        assert!((1..=40).any(|q| d.swapped(q, "ann", false) != d.swapped(q, "ann", true)));
-        assert!((1..=40).any(|q| d.swapped(q, "ann", false) == d.swapped(q, "ann", true)));
-        d.answered.clear();
-        // Leases: bob is not shown what ann holds.
-        let a = d.next("ann", None).unwrap().unwrap();
-        let b = d.next("bob", None).unwrap().unwrap();
-        assert_ne!(a.query.id, b.query.id);
-        // ann prefers the second trajectory; the store's answer says so whatever the sides.
-        d.answer(
-            "ann",
-            a.query.id,
-            choose(&a, Preference::Second),
-            900,
-            [2, 1],
-        )
-        .unwrap();
-        let g = &d.given[&(a.query.id, "ann".to_string(), false)];
-        assert_eq!(g.answer.preference, Preference::Second);
-        assert_eq!(g.answer.labeller, "ann");
-        // The truth prefers the first (return id against 0): the shadow says first.
-        assert_eq!(g.answer.shadow, Some(Preference::First));
-        assert_eq!(
-            d.answer("bob", a.query.id, Choice::Left, 1, [0, 0]),
-            Err(Refused::AnsweredByOther(a.query.id))
-        );
-        assert_eq!(
-            d.answer("ann", a.query.id, Choice::Left, 1, [0, 0]),
-            Err(Refused::Answered(a.query.id))
-        );
-        assert_eq!(
-            d.answer("ann", 999, Choice::Left, 1, [0, 0]),
-            Err(Refused::Unknown(999))
-        );
-        // Undo gives the pair back to ann first; nothing is sent meanwhile.
-        assert_eq!(d.undo("ann"), Ok(a.query.id));
-        assert_eq!(d.undo("ann"), Err(Refused::NothingToUndo));
-        assert_eq!(d.next("ann", None).unwrap().unwrap().query.id, a.query.id);
-        assert!(d.due(ms(1000)).unwrap().is_empty());
-        assert!(matches!(d.next("a/b", None), Err(Refused::Invalid(_))));
-    }
-
-    #[test]
-    fn answers_survive_a_restart_until_acknowledged_and_go_once_past_undo() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("t.sqlite");
-        let (q1, q2) = {
-            let mut d = desk(&path, |c| c.undo_s = 0);
-            for id in [7, 8, 9] {
-                d.receive(query(id, 1.0, 0.0)).unwrap();
-            }
-            let s1 = d.next("ann", None).unwrap().unwrap();
-            d.answer("ann", s1.query.id, Choice::Left, 10, [1, 1])
-                .unwrap();
-            let s2 = d.next("ann", None).unwrap().unwrap();
-            d.answer("ann", s2.query.id, Choice::Equal, 10, [1, 1])
-                .unwrap();
-            // bob's page shows the last open pair.
-            assert!(d.next("bob", None).unwrap().is_some());
-            // NOTE: dropped without sending: a teacher killed before the learner heard.
-            (s1.query.id, s2.query.id)
-        };
-        let mut d = desk(&path, |c| c.undo_s = 0);
-        assert_eq!(d.open_queries(), 1);
-        // The pair on bob's page stays his across the restart.
-        assert!(d.next("ann", None).unwrap().is_none());
-        assert!(d.next("bob", None).unwrap().is_some());
-        let sent = d.due(ms(60_000)).unwrap();
-        let mut ids: Vec<u64> = sent.iter().map(|a| a.query).collect();
-        ids.sort();
-        assert_eq!(ids, vec![q1, q2]);
-        // Sent once; again only after the resend interval.
-        assert!(d.due(ms(60_000)).unwrap().is_empty());
-        // The learner asks q1 again (it did not hear): the same answer, not a new judgement.
-        let again = d.receive(query(q1, 1.0, 0.0)).unwrap().unwrap();
-        assert_eq!(again.query, q1);
-        assert_eq!(d.acknowledged(&ack(&[q1, q2])).unwrap(), 2);
-        assert_eq!(d.unacknowledged(), 0);
-        drop(d);
-        let mut d = desk(&path, |c| c.undo_s = 0);
-        assert!(d.due(ms(0)).unwrap().is_empty());
-        assert_eq!(d.open_queries(), 1);
-    }
-
-    #[test]
-    fn a_share_of_answers_is_asked_again_of_the_same_person_and_of_another() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("t.sqlite");
-        let mut d = desk(&path, |c| {
-            c.repeat_share = 1.0;
-            c.undo_s = 0;
-        });
-        for id in 1..=10 {
-            d.receive(query(id, 1.0, 0.0)).unwrap();
-        }
-        // bob is present (asked for a pair); ann answers query 1.
-        let held = d.next("bob", None).unwrap().unwrap();
-        let s = d.next("ann", None).unwrap().unwrap();
-        let first = s.query.id;
-        d.answer("ann", first, Choice::Left, 10, [1, 1]).unwrap();
-        // bob gets it at his next pair (his lease stays his own otherwise).
-        let r = d.next("bob", Some(held.query.id)).unwrap().unwrap();
-        assert!(r.repeat && r.query.id == first);
-        d.answer("bob", first, Choice::Right, 10, [1, 1]).unwrap();
-        // ann gets it again after three more answers, not before.
-        for _ in 0..3 {
-            let s = d.next("ann", None).unwrap().unwrap();
-            assert!(!s.repeat);
-            d.answer("ann", s.query.id, Choice::Skip, 10, [1, 1])
-                .unwrap();
-        }
-        // The first answer reaches the learner; a restart keeps the query answered (not
-        // open again) while its repeat waits.
-        assert!(d
-            .due(ms(60_000))
-            .unwrap()
-            .iter()
-            .any(|a| a.query == first && !a.repeat));
-        assert_eq!(d.acknowledged(&ack(&[first])).unwrap(), 1);
-        drop(d);
-        let mut d = desk(&path, |c| {
-            c.repeat_share = 1.0;
-            c.undo_s = 0;
-        });
-        assert!(d.answered.contains(&first));
-        let r = d.next("ann", None).unwrap().unwrap();
-        assert!(r.repeat && r.query.id == first);
-        // A repeat shows under another number than its first showing (ann's was
-        // `s.display`), and the same one on a reload.
-        assert_ne!(r.display, s.display);
-        assert!((1000..10_000).contains(&r.display));
-        assert_eq!(d.next("ann", None).unwrap().unwrap().display, r.display);
-        d.answer("ann", first, Choice::Equal, 10, [1, 1]).unwrap();
-        let repeats: Vec<(String, bool)> = d
-            .due(ms(60_000))
-            .unwrap()
-            .into_iter()
-            .filter(|a| a.query == first)
-            .map(|a| (a.labeller, a.repeat))
-            .collect();
-        // The first answer went before the restart; bob's repeat (given before it) and
-        // ann's go now.
-        assert_eq!(repeats.len(), 2, "{repeats:?}");
-        assert!(repeats.contains(&("bob".into(), true)));
-        assert!(repeats.contains(&("ann".into(), true)));
     }
 }
