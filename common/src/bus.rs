@@ -706,6 +706,14 @@ impl MessagePublisher {
             .map_err(|e| anyhow!("publishing on {}: {e}", self.publisher.key_expr()))
     }
 
+    /// Send a message encoded already (by [`wire::encode`], for this publisher's run).
+    pub async fn send_encoded(&self, message: &[u8]) -> Result<()> {
+        self.publisher
+            .put(message.to_vec())
+            .await
+            .map_err(|e| anyhow!("publishing on {}: {e}", self.publisher.key_expr()))
+    }
+
     /// Whether a matching subscription is known yet.
     pub async fn has_subscribers(&self) -> Result<bool> {
         has_subscribers(&self.publisher).await

@@ -35,13 +35,13 @@ pub fn read_labels(path: &Path) -> Result<StoredLabels> {
     if rows.is_empty() {
         bail!("label store {} holds no labels", path.display());
     }
-    let mut whole: HashMap<u64, crate::pref::labels::Segment> = HashMap::new();
+    let mut whole: HashMap<u64, crate::pref::labels::StoredSteps> = HashMap::new();
     let (mut obs_dim, mut act_dim) = (0, 0);
     let mut data = Vec::with_capacity(rows.len());
     for row in rows {
         let mut side = |id: u64, (start, len): (usize, usize)| -> Result<Arc<Segment>> {
             if let Entry::Vacant(e) = whole.entry(id) {
-                e.insert(store.segment(id)?);
+                e.insert(store.steps(id)?);
             }
             let t = &whole[&id];
             if (obs_dim, act_dim) == (0, 0) {

@@ -74,17 +74,17 @@ pub struct LabelStats {
 
 /// [`LabelStats::food`] of the store at `path`.
 fn food_contrast(path: &Path) -> Result<Option<Agreement>> {
-    use crate::pref::labels::{LabelStore, Segment};
+    use crate::pref::labels::{LabelStore, StoredSteps};
     use pbrl_common::trajectory::FEATURES;
     use pbrl_common::wire::Preference;
     // NOTE: a store of schema 1 or 2 (read only, not upgraded) keeps no features.
     let Ok(store) = LabelStore::open_read_only(path) else {
         return Ok(None);
     };
-    let mut cache: BTreeMap<u64, Segment> = BTreeMap::new();
+    let mut cache: BTreeMap<u64, StoredSteps> = BTreeMap::new();
     let mut eaten = |id: u64, (start, len): (usize, usize)| -> Result<Option<f32>> {
         if let std::collections::btree_map::Entry::Vacant(e) = cache.entry(id) {
-            e.insert(store.segment(id)?);
+            e.insert(store.steps(id)?);
         }
         let s = &cache[&id];
         if s.features.len() != s.steps * FEATURES || start + len > s.steps {

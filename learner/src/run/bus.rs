@@ -8,10 +8,11 @@ use std::collections::BTreeMap;
 use anyhow::Result;
 use pbrl_common::bus::{put_message, Inbox, Labellers, MessagePublisher, WeightsServer};
 use pbrl_common::wire::{
-    Answer, AnswerAck, Body, EvalRequest, EvalResult, LearnerStatus, Query, Stop, TrajectoryMsg,
-    Weights,
+    Answer, AnswerAck, Body, EvalRequest, EvalResult, LearnerStatus, Stop, TrajectoryMsg, Weights,
 };
 use pbrl_common::Keys;
+
+use crate::pref::feedback::Outgoing;
 use zenoh::qos::Priority;
 use zenoh::Session;
 
@@ -75,9 +76,10 @@ impl LearnerBus {
         self.weights.publish(w).await
     }
 
-    pub async fn ask(&self, queries: &[Query]) -> Result<()> {
+    /// Send queries, as the label store keeps them.
+    pub async fn ask(&self, queries: &[Outgoing]) -> Result<()> {
         for q in queries {
-            self.queries.send(&Body::Query(Box::new(q.clone()))).await?;
+            self.queries.send_encoded(&q.message).await?;
         }
         Ok(())
     }

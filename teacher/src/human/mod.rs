@@ -110,7 +110,7 @@ pub enum Refused {
 
 /// A pair to show: the query and which side goes left.
 #[derive(Clone, Debug)]
-pub struct Shown {
+pub struct Showing {
     pub query: Arc<Query>,
     /// The query's second trajectory is shown on the left.
     pub swapped: bool,
@@ -378,7 +378,11 @@ impl Desk {
 
     /// The next pair for `labeller` (none open: `None`), not `exclude`: an undone answer's
     /// query first, then a repeat that is due, then the oldest open query nobody else holds.
-    pub fn next(&mut self, labeller: &str, exclude: Option<u64>) -> Result<Option<Shown>, Refused> {
+    pub fn next(
+        &mut self,
+        labeller: &str,
+        exclude: Option<u64>,
+    ) -> Result<Option<Showing>, Refused> {
         check_name(labeller)?;
         let now = now_ms();
         let lease_ms = self.cfg.lease_s * 1000;
@@ -432,7 +436,7 @@ impl Desk {
                 .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e:#}")))?;
             self.leases.insert(id, (labeller.to_string(), now));
         }
-        Ok(Some(Shown {
+        Ok(Some(Showing {
             query: self.queries[&id].clone(),
             swapped: self.swapped(id, labeller, repeat),
             repeat,

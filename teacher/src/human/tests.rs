@@ -69,7 +69,7 @@ fn ack(queries: &[u64]) -> pbrl_common::wire::AnswerAck {
 }
 
 /// The choice that means `p` on the pair as shown.
-fn choose(s: &Shown, p: Preference) -> Choice {
+fn choose(s: &Showing, p: Preference) -> Choice {
     match (p, s.swapped) {
         (Preference::First, false) | (Preference::Second, true) => Choice::Left,
         (Preference::Second, false) | (Preference::First, true) => Choice::Right,
@@ -120,10 +120,10 @@ fn a_stale_query_is_offered_to_nobody_new_and_who_holds_it_may_answer() {
     assert!(d.queries.contains_key(&1), "ada still holds it");
     d.answer("ada", 1, Choice::Left, 800, [1, 1]).unwrap();
     // Each first showing is kept with where the learner stood.
-    let shown: Vec<(i64, String, i64)> = d.store.rows(
-        "SELECT query, labeller, env_steps FROM shown ORDER BY query, labeller",
-    )
-    .unwrap();
+    let shown: Vec<(i64, String, i64)> = d
+        .store
+        .rows("SELECT query, labeller, env_steps FROM shown ORDER BY query, labeller")
+        .unwrap();
     assert_eq!(
         shown,
         [(1, "ada".to_string(), 500), (2, "bob".to_string(), 1_500)]
@@ -162,7 +162,7 @@ fn sides_undo_leases_and_the_oracle_shadow() {
         d.receive(query(id, id as f32, 0.0)).unwrap();
     }
     // Sides are shuffled: over 40 queries both ways occur, and a choice maps back.
-    let shown: Vec<Shown> = (0..40)
+    let shown: Vec<Showing> = (0..40)
         .map(|_| {
             let s = d.next("ann", None).unwrap().unwrap();
             d.leases.remove(&s.query.id);

@@ -27,7 +27,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use pbrl_common::wire::{self, AnswerAck, Query, TrajectoryMsg};
+use pbrl_common::wire::{self, AnswerAck, TrajectoryMsg};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -40,6 +40,7 @@ use crate::state::RngState;
 pub use choose::Side;
 pub(crate) use open::target;
 use open::InFlight;
+pub use open::Outgoing;
 
 /// Counters of the feedback loop (saved with each checkpoint).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -212,7 +213,7 @@ impl Feedback {
                     self.in_flight.insert(
                         id,
                         InFlight {
-                            query: Box::new(q),
+                            query: Outgoing::encode(&self.run, q),
                             // NOTE: asked again at once after a restart.
                             sent: Instant::now() - Duration::from_secs(self.cfg.query_retry_s),
                             keys,
@@ -324,7 +325,7 @@ impl Feedback {
         &mut self,
         done: JobDone,
         now: u64,
-    ) -> Result<(Vec<Query>, Option<Arc<RewardModel>>)> {
+    ) -> Result<(Vec<Outgoing>, Option<Arc<RewardModel>>)> {
         match done {
             JobDone::Chosen {
                 session,

@@ -14,8 +14,31 @@ use crate::pref::query::{Candidate, Sampler, TrajKey};
 use crate::pref::reward_model::{Labelled, Segment};
 
 /// A query asked and not answered yet.
+/// A query to send, encoded once: the message the label store keeps is the message sent
+/// (and sent again). It reads as its query.
+#[derive(Clone, Debug)]
+pub struct Outgoing {
+    pub query: Query,
+    pub message: Arc<Vec<u8>>,
+}
+
+impl Outgoing {
+    /// `query` of run `run`, encoded.
+    pub fn encode(run: &str, query: Query) -> Self {
+        let message = Arc::new(wire::encode(run, &Body::Query(Box::new(query.clone()))));
+        Self { query, message }
+    }
+}
+
+impl std::ops::Deref for Outgoing {
+    type Target = Query;
+    fn deref(&self) -> &Query {
+        &self.query
+    }
+}
+
 pub(super) struct InFlight {
-    pub(super) query: Box<Query>,
+    pub(super) query: Outgoing,
     pub(super) sent: Instant,
     /// Its two trajectories (for the bound on open queries per trajectory).
     pub(super) keys: [TrajKey; 2],
@@ -26,7 +49,7 @@ impl Feedback {
         if let Some(s) = self.segments.get(&id) {
             return Ok(s.clone());
         }
-        let s = self.store.segment(id)?;
+        let s = self.store.steps(id)?;
         Ok(Arc::new(Segment {
             obs: s.obs,
             actions: s.actions,
@@ -67,7 +90,7 @@ impl Feedback {
         sampler: Sampler,
         pairs: &[(Side, Side)],
         r_avg: Option<f32>,
-    ) -> Result<Vec<Query>> {
+    ) -> Result<Vec<Outgoing>> {
         let mut out = Vec::with_capacity(pairs.len());
         let sampler_name = match sampler {
             Sampler::Uniform => "uniform",
@@ -104,8 +127,9 @@ impl Feedback {
                         r_avg,
                         withdraw_at_steps,
                     };
-                    let bytes = wire::encode(&run, &Body::Query(Box::new(q.clone())));
-                    built = Some(q);
+                    let out = Outgoing::encode(&run, q);
+                    let bytes = out.message.to_vec();
+                    built = Some(out);
                     bytes
                 },
             )?;
@@ -117,7 +141,7 @@ impl Feedback {
             self.in_flight.insert(
                 asked.query,
                 InFlight {
-                    query: Box::new(q.clone()),
+                    query: q.clone(),
                     sent: Instant::now(),
                     keys: [a.trajectory.key, b.trajectory.key],
                 },
@@ -219,7 +243,7 @@ impl Feedback {
     /// Queries to ask again (unanswered for `query_retry_s`) at `env_steps`; queries past
     /// `query_expiry_s` expire instead, and those grown stale (`query_stale_steps`) are
     /// withdrawn, a fresh one owed in each one's place.
-    pub fn retry(&mut self, env_steps: u64) -> Result<Vec<Query>> {
+    pub fn retry(&mut self, env_steps: u64) -> Result<Vec<Outgoing>> {
         let retry = Duration::from_secs(self.cfg.query_retry_s);
         let now = now_ms();
         let mut again = Vec::new();
@@ -233,7 +257,7 @@ impl Feedback {
                 stale.push(*id);
             } else if f.sent.elapsed() >= retry {
                 f.sent = Instant::now();
-                again.push((*f.query).clone());
+                again.push(f.query.clone());
             }
         }
         for id in expired {

@@ -235,7 +235,7 @@ pub struct LabelRow {
 
 /// The steps of one stored trajectory.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Segment {
+pub struct StoredSteps {
     pub steps: usize,
     pub obs_dim: usize,
     pub act_dim: usize,

@@ -4,7 +4,7 @@ use anyhow::{bail, Context, Result};
 use pbrl_common::wire::Preference;
 use rusqlite::OptionalExtension;
 
-use super::{from_blob, int, uint, Blob, Counts, LabelRow, LabelStore, Segment};
+use super::{from_blob, int, uint, Blob, Counts, LabelRow, LabelStore, StoredSteps};
 
 impl LabelStore {
     /// The actor's numbering of stored trajectory `id`: (actor, incarnation, seq).
@@ -178,7 +178,7 @@ impl LabelStore {
     }
 
     /// The steps of trajectory `trajectory` (an id from [`Asked`] or [`LabelRow`]).
-    pub fn segment(&self, trajectory: u64) -> Result<Segment> {
+    pub fn steps(&self, trajectory: u64) -> Result<StoredSteps> {
         let context = || {
             format!(
                 "reading trajectory {trajectory} from {}",
@@ -236,7 +236,7 @@ impl LabelStore {
                 context()
             );
         }
-        Ok(Segment {
+        Ok(StoredSteps {
             steps,
             obs_dim,
             act_dim,

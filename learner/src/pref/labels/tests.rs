@@ -132,7 +132,7 @@ fn a_label_round_trips_through_the_file() {
     );
     assert!(store.labels_since(1).unwrap().is_empty());
     for (id, t) in [(q1.first, &a), (q1.second, &b), (q2.first, &c)] {
-        let s = store.segment(id).unwrap();
+        let s = store.steps(id).unwrap();
         assert_eq!(
             (s.steps, s.obs_dim, s.act_dim),
             (t.actions.len() / ACT_DIM, OBS_DIM, ACT_DIM)
@@ -140,7 +140,7 @@ fn a_label_round_trips_through_the_file() {
         assert_eq!(bits(&s.obs), bits(&t.obs));
         assert_eq!(bits(&s.actions), bits(&t.actions));
     }
-    let e = store.segment(99).unwrap_err().to_string();
+    let e = store.steps(99).unwrap_err().to_string();
     assert!(e.contains("99") && e.contains("labels.sqlite"), "{e}");
     // The view for people: both trajectories' versions and seeds, u64 seeds by bits.
     let (seed, version): (i64, i64) = store
@@ -335,7 +335,7 @@ fn a_schema_2_store_reads_its_queries_as_whole_trajectories_and_stores_segments(
     sa.features = &features;
     let asked = store.ask(2, "uniform", 10, 5, &sa, &sb, message).unwrap();
     answer(&mut store, asked.query, Preference::First);
-    assert!(store.segment(rows[0].first).unwrap().features.is_empty());
+    assert!(store.steps(rows[0].first).unwrap().features.is_empty());
     // Asked again with its features, an older trajectory gains them.
     let old = traj(0, 1, 3);
     let mut again = stored(&old);
@@ -345,9 +345,9 @@ fn a_schema_2_store_reads_its_queries_as_whole_trajectories_and_stores_segments(
         .ask(2, "uniform", 10, 5, &again, &sb, message)
         .unwrap();
     assert_eq!(re.first, rows[0].first, "the same trajectory");
-    assert_eq!(store.segment(re.first).unwrap().features, old_features);
-    assert_eq!(store.segment(asked.first).unwrap().features, features);
-    assert!(store.segment(asked.second).unwrap().features.is_empty());
+    assert_eq!(store.steps(re.first).unwrap().features, old_features);
+    assert_eq!(store.steps(asked.first).unwrap().features, features);
+    assert!(store.steps(asked.second).unwrap().features.is_empty());
     let mut ragged = stored(&a);
     ragged.features = &features[..7];
     let e = store
@@ -489,7 +489,7 @@ fn a_second_connection_reads_while_the_first_writes() {
     let q = ask(&mut writer, &traj(0, 1, 3), &traj(0, 2, 3));
     answer(&mut writer, q.query, Preference::Equal);
     assert_eq!(reader.labels_since(0).unwrap().len(), 1);
-    assert_eq!(reader.segment(q.first).unwrap().steps, 3);
+    assert_eq!(reader.steps(q.first).unwrap().steps, 3);
 }
 
 #[test]
@@ -515,7 +515,7 @@ fn a_committed_answer_survives_a_crash() {
         (labels[0].query, labels[0].preference),
         (q.query, Preference::First)
     );
-    assert_eq!(recovered.segment(q.second).unwrap().steps, 3);
+    assert_eq!(recovered.steps(q.second).unwrap().steps, 3);
     // The open query can be asked again, as it was sent.
     assert_eq!(
         recovered.open_queries().unwrap(),
