@@ -179,64 +179,25 @@ fn parse_teacher(s: &str) -> Result<Who, String> {
         })
 }
 
-/// The shadow teacher of a person (`--shadow`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Shadow {
-    /// The oracle judges each query a person answers, on the ground truth; recorded
-    /// beside the person's answer, never shown and never trained on.
-    Oracle,
-}
-
 /// The human teacher's page and queue.
 #[derive(Args, Clone, Debug)]
 pub struct HumanArgs {
-    /// Human teacher: where the labelling page listens (loopback unless a --token is set).
-    #[arg(long, default_value = "127.0.0.1:8080")]
-    pub http: std::net::SocketAddr,
-    /// Human teacher: the access token every API call must carry (needed beyond loopback;
-    /// default: the PBRL_TOKEN environment variable).
-    #[arg(long)]
-    pub token: Option<String>,
-    /// Human teacher: serve the page over HTTPS with this certificate (PEM; needed beyond
-    /// loopback; `deploy/certs.sh page:NAME@IP` makes one).
-    #[arg(long, value_name = "FILE", requires = "https_key")]
-    pub https_cert: Option<std::path::PathBuf>,
-    /// Human teacher: the private key of --https-cert (PEM).
-    #[arg(long, value_name = "FILE", requires = "https_cert")]
-    pub https_key: Option<std::path::PathBuf>,
-    /// Human teacher: seconds an answer can be undone before it goes to the learner.
-    #[arg(long, default_value_t = 10)]
-    pub undo_s: u64,
-    /// Human teacher: share of answered queries asked again (of the same person, and of
-    /// another when two are labelling), to measure consistency and agreement.
-    #[arg(long, default_value_t = 0.1)]
-    pub repeat_share: f64,
-    /// Human teacher: record a scripted teacher's answer beside each person's.
-    #[arg(long, value_enum)]
-    pub shadow: Option<Shadow>,
+    #[command(flatten)]
+    pub http: HttpConfig,
+    #[command(flatten)]
+    pub desk: HumanConfig,
 }
 
 impl HumanArgs {
     fn config(&self, seed: u64) -> HumanConfig {
         HumanConfig {
-            undo_s: self.undo_s,
-            repeat_share: self.repeat_share,
-            shadow: self.shadow.is_some(),
             seed,
-            ..HumanConfig::default()
+            ..self.desk.clone()
         }
     }
 
     fn http(&self) -> HttpConfig {
-        HttpConfig {
-            addr: self.http,
-            token: self
-                .token
-                .clone()
-                .or_else(|| std::env::var("PBRL_TOKEN").ok().filter(|t| !t.is_empty())),
-            https_cert: self.https_cert.clone(),
-            https_key: self.https_key.clone(),
-        }
+        self.http.clone().with_env_token()
     }
 }
 

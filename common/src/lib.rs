@@ -4,6 +4,7 @@
 pub mod alloc;
 pub mod bus;
 pub mod connect;
+pub mod flags;
 pub mod keys;
 pub mod nets;
 pub mod normalize;

@@ -9,7 +9,6 @@
 //! them all.
 
 pub mod bench;
-pub mod flags;
 pub mod optim;
 pub mod pref;
 pub mod rl;

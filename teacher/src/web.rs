@@ -44,19 +44,40 @@ const MAX_BODY: usize = 16 << 10;
 
 const PAGE: &str = include_str!("../assets/label.html");
 
-/// Where and how the page listens.
-#[derive(Clone, Debug)]
+/// Where and how the page listens. Each default is its flag's.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, clap::Args)]
 pub struct HttpConfig {
+    /// Human teacher: where the labelling page listens (loopback unless a --token is set).
+    #[arg(long = "http", default_value = "127.0.0.1:8080")]
     pub addr: SocketAddr,
-    /// Needed on any address but loopback.
+    /// Human teacher: the access token every API call must carry (needed beyond loopback;
+    /// default: the PBRL_TOKEN environment variable).
+    #[arg(long)]
     pub token: Option<String>,
-    /// HTTPS: the page's certificate chain (PEM); needed on any address but loopback.
+    /// Human teacher: serve the page over HTTPS with this certificate (PEM; needed beyond
+    /// loopback; `deploy/certs.sh page:NAME@IP` makes one).
+    #[arg(long, value_name = "FILE", requires = "https_key")]
     pub https_cert: Option<PathBuf>,
-    /// HTTPS: the private key of `https_cert` (PEM).
+    /// Human teacher: the private key of --https-cert (PEM).
+    #[arg(long, value_name = "FILE", requires = "https_cert")]
     pub https_key: Option<PathBuf>,
 }
 
+impl Default for HttpConfig {
+    fn default() -> Self {
+        pbrl_common::flags::defaults()
+    }
+}
+
 impl HttpConfig {
+    /// The token: the flag's, else the PBRL_TOKEN environment variable's (if not empty).
+    pub fn with_env_token(mut self) -> Self {
+        if self.token.is_none() {
+            self.token = std::env::var("PBRL_TOKEN").ok().filter(|t| !t.is_empty());
+        }
+        self
+    }
+
     /// Refuse a bind beyond loopback without a token and HTTPS, and half of the HTTPS pair.
     pub fn validate(&self) -> Result<()> {
         match (&self.https_cert, &self.https_key) {

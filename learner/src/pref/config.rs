@@ -207,7 +207,7 @@ impl PrefConfig {
 impl Default for PrefConfig {
     /// Every field at its flag's default.
     fn default() -> Self {
-        crate::flags::defaults()
+        pbrl_common::flags::defaults()
     }
 }
 

@@ -76,7 +76,7 @@ pub struct PpoConfig {
 impl Default for PpoConfig {
     /// Every field at its flag's default.
     fn default() -> Self {
-        crate::flags::defaults()
+        pbrl_common::flags::defaults()
     }
 }
 

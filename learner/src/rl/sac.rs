@@ -120,7 +120,7 @@ fn hybrid_steps() -> usize {
 impl Default for SacConfig {
     /// Every field at its flag's default.
     fn default() -> Self {
-        crate::flags::defaults()
+        pbrl_common::flags::defaults()
     }
 }
 

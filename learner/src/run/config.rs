@@ -124,7 +124,7 @@ impl LearnerConfig {
         obs_dim: usize,
         act_dim: usize,
     ) -> Self {
-        let mut cfg: LearnerConfig = crate::flags::defaults();
+        let mut cfg: LearnerConfig = pbrl_common::flags::defaults();
         cfg.run = run.into();
         cfg.algo = algo;
         cfg.reward = reward;

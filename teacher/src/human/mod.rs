@@ -40,30 +40,41 @@ pub(crate) mod tests;
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
 use crate::teacher::Teacher;
 
-/// The desk's settings (its file is the teacher's: `TeacherConfig::state`).
-#[derive(Clone, Debug)]
+/// Whose answer is recorded beside each person's (`--shadow`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Shadow {
+    /// The oracle judges each query a person answers, on the ground truth; recorded
+    /// beside the person's answer, never shown and never trained on.
+    Oracle,
+}
+
+/// The desk's settings (its file is the teacher's: `TeacherConfig::state`). Each default is
+/// its flag's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
 pub struct HumanConfig {
-    /// Seconds an answer can be undone before it goes to the learner.
+    /// Human teacher: seconds an answer can be undone before it goes to the learner.
+    #[arg(long, default_value_t = 10)]
     pub undo_s: u64,
-    /// Seconds a query shown to a person stays theirs.
+    /// Human teacher: seconds a pair shown to a person stays theirs (nobody else is shown
+    /// it meanwhile).
+    #[arg(long, default_value_t = 300)]
     pub lease_s: u64,
-    /// Share of answered queries asked again (0 to 1).
+    /// Human teacher: share of answered queries asked again (of the same person, and of
+    /// another when two are labelling), to measure consistency and agreement.
+    #[arg(long, default_value_t = 0.1)]
     pub repeat_share: f64,
-    /// Record the oracle's answer beside each person's.
-    pub shadow: bool,
-    /// Seed of the repeats' draws and the sides' shuffles.
+    /// Human teacher: record a scripted teacher's answer beside each person's.
+    #[arg(long, value_enum)]
+    pub shadow: Option<Shadow>,
+    /// Seed of the repeats' draws and the sides' shuffles (the run's).
+    #[arg(skip)]
     pub seed: u64,
 }
 
 impl Default for HumanConfig {
     fn default() -> Self {
-        Self {
-            undo_s: 10,
-            lease_s: 300,
-            repeat_share: 0.1,
-            shadow: false,
-            seed: 0,
-        }
+        pbrl_common::flags::defaults()
     }
 }
 
@@ -541,6 +552,7 @@ impl Desk {
         let shadow = self
             .cfg
             .shadow
+            .is_some()
             .then(|| crate::teacher::judge_query(&mut self.oracle, &q));
         Answer {
             query,

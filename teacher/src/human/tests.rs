@@ -155,7 +155,7 @@ fn a_stale_query_is_offered_to_nobody_new_and_who_holds_it_may_answer() {
 fn sides_undo_leases_and_the_oracle_shadow() {
     let dir = tempfile::tempdir().unwrap();
     let mut d = desk(&dir.path().join("t.sqlite"), |c| {
-        c.shadow = true;
+        c.shadow = Some(Shadow::Oracle);
         c.undo_s = 3600;
     });
     for id in 1..=40 {

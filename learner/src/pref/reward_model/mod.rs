@@ -185,7 +185,7 @@ fn crop_max() -> f64 {
 impl Default for RewardModelConfig {
     /// Every field at its flag's default.
     fn default() -> Self {
-        crate::flags::defaults()
+        pbrl_common::flags::defaults()
     }
 }
 
