@@ -41,6 +41,12 @@ pub struct LearnArgs {
     /// No progress bar even on a terminal.
     #[arg(long)]
     pub quiet: bool,
+    /// On the point task, keep the default label-efficient settings (segments, the
+    /// budget's schedule, crops, comfort features, hybrid replay, the task prior) rather
+    /// than the point preset's plain ones: what `pbrl train` runs on feeding, on a task
+    /// small enough for the fault and multi-host tests.
+    #[arg(long)]
+    pub label_efficient: bool,
     /// Run id (key expressions `pbrl/<run>/...`); default `<algo>-<reward>-s<seed>`.
     #[arg(long)]
     pub run: Option<String>,
@@ -90,7 +96,7 @@ impl LearnArgs {
             config::apply_preset(&mut cfg, &preset, &self.explicit)?;
         }
         if self.task == Task::Point {
-            let preset = config::point_preset(POINT_HORIZON);
+            let preset = config::point_preset(POINT_HORIZON, self.label_efficient);
             config::apply_preset(&mut cfg, &preset, &self.explicit)?;
         }
         // NOTE: only where it is read: a run checkpointed without it resumes.

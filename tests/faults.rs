@@ -1,5 +1,5 @@
-//! The fault matrix: a Decoupled PEBBLE run on the point task as separate processes (a
-//! learner, two actors, an oracle teacher) through the stock `zenohd` router over TLS with
+//! The fault matrix: a Decoupled PEBBLE run on the point task, with the default
+//! label-efficient settings, as separate processes (a learner, two actors, an oracle teacher) through the stock `zenohd` router over TLS with
 //! access control by role, struck by one fault while labels flow. After each the run
 //! finishes, the label store holds exactly the answers the teacher gave (the whole budget,
 //! none lost, none twice) and every curve row has its evaluation. Each prints the time it

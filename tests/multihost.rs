@@ -3,7 +3,8 @@
 //! (made here; root and iproute2 are needed, and without them the test fails, saying so).
 //! The learner is on one host, the router on a second, two actors and a scripted teacher
 //! on a third, each with its own certificate from `deploy/certs.sh`; a Decoupled PEBBLE run
-//! on the point task finishes and every answer the teacher gave is in the label store once.
+//! on the point task, with the default label-efficient settings, finishes and every answer
+//! the teacher gave is in the label store once.
 
 mod support;
 

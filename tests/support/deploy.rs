@@ -209,10 +209,13 @@ const RUST_LOG: &str = "warn,pbrl=info,pbrl_learner=info,pbrl_teacher=info,pbrl_
 /// Env steps between curve rows.
 pub const LOG_EVERY: u64 = 1_000;
 
-/// One Decoupled PEBBLE run on the point task: a learner, two actors and an oracle teacher
-/// through a stock router, each with its own certificate. The teacher's budget is asked
-/// in the first 2,400 env steps (four sessions of ten), so a run of several thousand
-/// steps has time to store every answer, and a fault can strike while labels flow.
+/// One Decoupled PEBBLE run on the point task with the default label-efficient settings
+/// (`--label-efficient`: segments, the budget's schedule, crops, comfort features, hybrid
+/// replay, the task prior; what `pbrl train` runs on feeding): a learner, two actors and an
+/// oracle teacher through a stock router, each with its own certificate. The budget's
+/// schedule spans the first 2,400 env steps after the pretraining (five sessions), so a run
+/// of several thousand steps has time to store every answer, and a fault can strike while
+/// labels flow.
 pub struct Deployment {
     pub dir: tempfile::TempDir,
     pub run: String,
@@ -347,9 +350,10 @@ impl Deployment {
             "--reward=decoupled",
             "--actors=2",
             "--eval-episodes=2",
+            "--label-efficient",
             "--unsup-steps=600",
             "--feedback-interval=600",
-            "--queries-per-session=10",
+            "--feedback-span=2400",
             "--query-retry-s=1",
             // NOTE: a gradient step of a larger net every env step holds the point task
             // to tens of env steps/s, so the budget's sessions span tens of seconds of

@@ -308,11 +308,16 @@ pub fn ppo_preset() -> Vec<Setting> {
 }
 
 /// The point task (made for tests) learns in seconds with small networks and short
-/// sessions; `horizon` is its episode length.
-pub fn point_preset(horizon: u32) -> Vec<Setting> {
+/// sessions; `horizon` is its episode length. Its preference settings are the plain ones
+/// ([`label_efficiency_off`]) unless `label_efficient`.
+pub fn point_preset(horizon: u32, label_efficient: bool) -> Vec<Setting> {
     use serde_json::json;
     let rollout = 32 * horizon;
-    let mut v = label_efficiency_off();
+    let mut v = if label_efficient {
+        Vec::new()
+    } else {
+        label_efficiency_off()
+    };
     v.extend([
         ("sac_hidden", "/sac/hidden", json!([64, 64])),
         ("sac_batch", "/sac/batch", json!(64)),
@@ -534,7 +539,7 @@ mod tests {
             ("paper", paper_preset(Algo::Sac)),
             ("paper-ppo", paper_preset(Algo::Ppo)),
             ("ppo", ppo_preset()),
-            ("point", point_preset(50)),
+            ("point", point_preset(50, false)),
         ] {
             for (id, path, _) in preset {
                 assert!(flags.contains(id), "the {name} preset names no flag {id}");
