@@ -46,9 +46,6 @@ pub struct WatchArgs {
     pub width: u32,
 }
 
-/// The page: the labelling page itself, whose watch mode plays embedded episodes.
-const PAGE: &str = include_str!("../teacher/assets/label.html");
-
 /// One episode of `run`'s policy drawn as the page draws an attempt.
 fn drawn(run: &Run, world: &WorldConfig, seed: u64, acting: Acting) -> Result<serde_json::Value> {
     let policy = Policy::from_weights(&run.policy.weights)?;
@@ -60,18 +57,13 @@ fn drawn(run: &Run, world: &WorldConfig, seed: u64, acting: Acting) -> Result<se
     Ok(serde_json::to_value(&s)?)
 }
 
-/// The page with `data` inside it (watch mode).
+/// The labelling page, whose watch mode plays embedded episodes, as one file (its style
+/// sheet and scripts inline) with `data` inside it.
 pub fn page_with(data: &serde_json::Value) -> Result<String> {
     // NOTE: "</" inside a script element would end it; "<\/" is the same JSON string.
     let json = serde_json::to_string(data)?.replace("</", "<\\/");
-    let tag = "<script>\n(() => {";
-    let Some(at) = PAGE.find(tag) else {
-        bail!("the labelling page has no main script to put the episodes before");
-    };
-    Ok(format!(
-        "{}<script id=\"pbrl-watch\" type=\"application/json\">{json}</script>\n{}",
-        &PAGE[..at],
-        &PAGE[at..]
+    pbrl_teacher::web::page_inline(&format!(
+        "<script id=\"pbrl-watch\" type=\"application/json\">{json}</script>\n"
     ))
 }
 

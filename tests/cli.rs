@@ -1,12 +1,9 @@
 //! The `pbrl env` commands, run as a user runs them.
 
-use std::process::Command;
+mod support;
 
 fn pbrl(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .output()
-        .expect("the pbrl binary runs")
+    support::proc::pbrl(args).output()
 }
 
 fn text(out: &std::process::Output) -> (String, String) {

@@ -1,10 +1,12 @@
 //! `pbrl exp`: a tiny grid, interrupted and run again, finishes without redoing a
 //! finished run; `pbrl exp plot` draws it.
 
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
 use pbrl_learner::run::run_folder::RunFolder;
+
+mod support;
+
+use support::poll::poll;
+use support::proc::pbrl;
 
 const GRID: &str = r#"
 name = "tiny"
@@ -20,17 +22,6 @@ checkpoint-every = 1000
 eval-episodes = 2
 "#;
 
-fn wait_for(what: &str, mut ready: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !ready() {
-        assert!(
-            start.elapsed() < Duration::from_secs(180),
-            "waited too long for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
 #[test]
 fn an_interrupted_grid_carries_on_without_redoing_a_finished_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -38,37 +29,36 @@ fn an_interrupted_grid_carries_on_without_redoing_a_finished_run() {
     std::fs::write(&grid, GRID).unwrap();
     let out = dir.path().join("exp");
     let exp = |extra: &[&str]| {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_pbrl"));
-        c.args(["exp", "run"])
-            .arg(&grid)
-            .arg("--out")
-            .arg(&out)
+        pbrl(["exp", "run"])
+            .args([&grid])
+            .args(["--out"])
+            .args([&out])
             .args(["--parallel", "1", "--progress-every", "1"])
-            .args(extra);
-        c
+            .args(extra)
     };
     let first = RunFolder::new(out.join("sac-true-s1"));
     let second = RunFolder::new(out.join("sac-true-s2"));
-    let child = exp(&[]).stdout(Stdio::piped()).spawn().unwrap();
-    wait_for("the first run to finish", || {
-        first.finished_steps().unwrap().is_some()
-    });
-    wait_for("the second run's first checkpoint", || {
-        second.latest_checkpoint().unwrap().is_some()
-    });
+    let mut child = exp(&[]).piped().spawn();
+    poll(
+        180,
+        || "the first run to finish".into(),
+        || first.finished_steps().unwrap().map(|_| ()),
+    );
+    poll(
+        180,
+        || "the second run's first checkpoint".into(),
+        || second.latest_checkpoint().unwrap().map(|_| ()),
+    );
     let finished_curve = std::fs::read(first.curve()).unwrap();
-    Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    let done = child.wait_with_output().unwrap();
-    assert!(done.status.success());
+    child.signal("-TERM");
+    let (done, _) = child.finish();
+    assert!(done.success());
     assert!(
         second.finished_steps().unwrap().is_none(),
         "the second run finished before the interruption; the test proves nothing"
     );
 
-    let again = exp(&[]).output().unwrap();
+    let again = exp(&[]).output();
     let text = String::from_utf8_lossy(&again.stdout);
     assert!(again.status.success(), "{text}");
     assert!(text.contains("sac-true-s1: finished (20"), "{text}");
@@ -78,12 +68,10 @@ fn an_interrupted_grid_carries_on_without_redoing_a_finished_run() {
     assert!(second.finished_steps().unwrap() >= Some(20_000));
 
     // The figures and the table.
-    let plot = Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(["exp", "plot"])
-        .arg(&out)
+    let plot = pbrl(["exp", "plot"])
+        .args([&out])
         .args(["--at", "10000,20000"])
-        .output()
-        .unwrap();
+        .output();
     assert!(
         plot.status.success(),
         "{}",

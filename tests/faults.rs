@@ -62,7 +62,7 @@ fn an_actor_killed_leaves_the_run_to_the_other_and_a_replacement_joins() {
     let mut d = Deployment::new("fault-actor", 2 * STEPS, false);
     d.start_all();
     labels_flowing(&d);
-    let actor = d.actors[1].take().unwrap();
+    let mut actor = d.actors[1].take().unwrap();
     actor.kill();
     let rows = d.rows();
     d.until("two curve rows from one actor", RUN_S, |d| {

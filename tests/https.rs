@@ -3,15 +3,15 @@
 //! serves the page and its API over TLS: a client that trusts the CA gets them, one that
 //! does not, or that speaks plain HTTP to the port, gets nothing.
 
-use std::path::Path;
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Output};
 
 use pbrl_common::connect::{free_local_port, ConnectArgs};
 
 mod support;
 
-use support::deploy::{certs, Proc};
+use support::deploy::certs;
+use support::poll::poll_async;
+use support::proc::pbrl;
 
 fn curl(args: &[&str]) -> Output {
     Command::new("curl")
@@ -19,17 +19,6 @@ fn curl(args: &[&str]) -> Output {
         .args(args)
         .output()
         .expect("curl runs")
-}
-
-fn pbrl(args: &[String], log: &Path) -> Proc {
-    let child = Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .env("RUST_LOG", "warn,pbrl=info,pbrl_teacher=info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .unwrap();
-    Proc(child, log.to_path_buf())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -66,11 +55,7 @@ async fn the_page_beyond_loopback_is_https_only_and_a_client_without_the_ca_sees
     };
 
     // Beyond loopback without a certificate: refused at start, naming the flags.
-    let out = Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(teacher("0.0.0.0:0", &[]))
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap();
+    let out = pbrl(teacher("0.0.0.0:0", &[])).rust_log("warn").output();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         !out.status.success(),
@@ -88,17 +73,17 @@ async fn the_page_beyond_loopback_is_https_only_and_a_client_without_the_ca_sees
         format!("--https-cert={}", c.join("page-ward.pem").display()),
         format!("--https-key={}", c.join("page-ward.key").display()),
     ];
-    let page = pbrl(&teacher(&addr, &tls), &d.join("teacher.log"));
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while std::net::TcpStream::connect(&addr).is_err() {
-        assert!(
-            Instant::now() < deadline,
-            "the page never listened: {}",
-            page.log()
-        );
-        // NOTE: polled to a deadline: waiting for the page to listen, not a timing.
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    let page = pbrl(teacher(&addr, &tls))
+        .dir(d)
+        .log("teacher")
+        .rust_log("warn,pbrl=info,pbrl_teacher=info")
+        .spawn();
+    poll_async(
+        60,
+        || format!("the page to listen{}", page.tail()),
+        || std::net::TcpStream::connect(&addr).ok(),
+    )
+    .await;
     let ca = c.join("ca.pem").display().to_string();
     let url = format!("https://{addr}");
     let got = curl(&["--cacert", &ca, &format!("{url}/")]);

@@ -4,7 +4,6 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
-use std::process::Child;
 use std::time::Duration;
 
 use pbrl_common::bus::{Inbox, MessagePublisher};
@@ -17,10 +16,13 @@ use pbrl_teacher::service::Judge;
 
 mod support;
 
-use support::signal;
+use support::proc::{pbrl, Proc};
 
-fn spawn(args: &[String], log: &Path) -> Child {
-    support::spawn_pbrl(args, log, "warn,pbrl=info,pbrl_learner=info")
+fn spawn(args: &[String], log: &Path) -> Proc {
+    pbrl(args)
+        .append_log(log)
+        .rust_log("warn,pbrl=info,pbrl_learner=info")
+        .spawn()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -61,8 +63,8 @@ async fn a_learner_killed_with_queries_in_flight_gets_every_answer_once_after_re
             .unwrap();
         seen.insert(q.id, *q);
     }
-    signal(&child, "-KILL");
-    child.wait().unwrap();
+    child.signal("-KILL");
+    child.wait();
 
     // Answered while the learner is down: nobody stores them yet.
     let mut oracle = Scripted::new(ScriptedConfig {
@@ -111,8 +113,8 @@ async fn a_learner_killed_with_queries_in_flight_gets_every_answer_once_after_re
             _ = queries.next() => {}
         }
     }
-    signal(&child, "-TERM");
-    child.wait().unwrap();
+    child.signal("-TERM");
+    child.wait();
 
     // Every answer is in D once, as given.
     let store = LabelStore::open(&out.join("labels.sqlite"), run).unwrap();

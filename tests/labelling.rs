@@ -4,392 +4,32 @@
 //! carries on with the restarted one), and bad HTTP input is refused and changes nothing.
 //!
 //! Each test runs `pbrl` processes on loopback and speaks HTTP/1.1 to them over a
-//! `TcpStream` (the API, and chromedriver's WebDriver protocol for the browser). The label
-//! store is read with the `sqlite3` command-line tool (or Python's sqlite3 module): the root
-//! package has no SQLite dev-dependency, and `LabelStore` does not show who answered. The
-//! tests run one at a time: two feeding runs beside a browser on 2 cores starve one another.
+//! `TcpStream` (the API, and chromedriver's WebDriver protocol for the browser; both in
+//! `support::web`). The label store is read with Python's sqlite3 module
+//! (`support::store::sql`): `LabelStore` does not show who answered. The tests run one at a
+//! time: two feeding runs beside a browser on 2 cores starve one another.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use pbrl_common::connect::free_local_port;
 use serde_json::{json, Value};
 
 mod support;
 
-use support::web::{
-    base64, browser_wanted, http, parse_reply, tail, wait_for, Browser, Proc, Reply,
-};
+use support::page::{human_train, train_args, LAYOUT_PROBLEMS, READ_PAGE};
+use support::poll::poll;
+use support::proc::{pbrl, Launch, LOG};
+use support::store::{human_answers, ids, sql, wait_for_answers};
+use support::web::{base64, browser_wanted, enc, http, parse_reply, Api, Browser};
 
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
 fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
     // NOTE: a failed test poisons the lock; the next one may still run.
     ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-// ---------- processes ----------
-
-/// A `pbrl` process in `dir` with `args`, its stderr in `dir/<name>.log`.
-fn pbrl(args: &[String], dir: &Path, name: &str) -> Proc {
-    let log = dir.join(format!("{name}.log"));
-    let file = std::fs::File::create(&log).unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .current_dir(dir)
-        .env(
-            "RUST_LOG",
-            "warn,pbrl=info,pbrl_learner=info,pbrl_teacher=info",
-        )
-        .env_remove("PBRL_TOKEN")
-        .stdout(Stdio::null())
-        .stderr(file)
-        .spawn()
-        .expect("the pbrl binary runs");
-    Proc {
-        child,
-        log,
-        group: false,
-    }
-}
-
-/// `pbrl train` on the feeding task, small enough that the first queries come within
-/// seconds (1,000 env steps of pretraining) and long enough to outlast the test.
-fn train_args(out: &Path, run: &str, extra: &[&str]) -> Vec<String> {
-    let mut a: Vec<String> = [
-        "train",
-        "--actors=1",
-        "--steps=200000",
-        "--unsup-steps=1000",
-        "--feedback-interval=1000",
-        "--queries-per-session=5",
-        "--max-open-queries=10",
-        "--query-retry-s=1",
-        "--eval-episodes=0",
-        "--log-every=5000",
-        "--checkpoint-every=0",
-        "--quiet",
-        "--fresh",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    a.push(format!("--run={run}"));
-    a.push(format!("--out={}", out.display()));
-    a.extend(extra.iter().map(|s| s.to_string()));
-    a
-}
-
-/// `pbrl train --teacher human` on a free loopback port, with `extra` flags, in `dir`: its
-/// page's address, its run folder and the process.
-fn human_train(dir: &Path, run: &str, extra: &[&str]) -> (String, PathBuf, Proc) {
-    let addr = format!("127.0.0.1:{}", free_local_port().unwrap());
-    let out = dir.join("run");
-    let http = format!("--http={addr}");
-    let mut flags = vec!["--teacher=human", http.as_str()];
-    flags.extend_from_slice(extra);
-    let train = pbrl(&train_args(&out, run, &flags), dir, "train");
-    (addr, out, train)
-}
-
-/// Wait for `child` to exit, at most `secs`.
-fn exit_status(child: &mut Child, secs: u64, what: &str) -> std::process::ExitStatus {
-    wait_for(
-        secs,
-        || format!("{what} to exit"),
-        || child.try_wait().unwrap(),
-    )
-}
-
-/// Percent-encoding of a query-string value.
-fn enc(s: &str) -> String {
-    s.bytes()
-        .map(|b| match b {
-            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
-                (b as char).to_string()
-            }
-            _ => format!("%{b:02X}"),
-        })
-        .collect()
-}
-
-/// The human teacher's API at `addr` (with `token`, every call carries it); `log` is the
-/// serving process's, for failure messages.
-struct Api {
-    addr: String,
-    token: Option<String>,
-    log: PathBuf,
-}
-
-impl Api {
-    fn try_call(&self, method: &str, path: &str, body: Option<&Value>) -> std::io::Result<Reply> {
-        let bearer = self.token.as_ref().map(|t| format!("Bearer {t}"));
-        let mut headers = vec![("Content-Type", "application/json")];
-        if let Some(b) = &bearer {
-            headers.push(("Authorization", b.as_str()));
-        }
-        let bytes = body.map(|b| serde_json::to_vec(b).unwrap());
-        http(&self.addr, method, path, &headers, bytes.as_deref())
-    }
-
-    fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Reply {
-        self.try_call(method, path, body).unwrap_or_else(|e| {
-            panic!(
-                "{method} http://{}{path}: {e}{}",
-                self.addr,
-                tail(&self.log)
-            )
-        })
-    }
-
-    fn answer(&self, labeller: &str, query: u64, choice: &str) -> Reply {
-        self.call(
-            "POST",
-            "/api/v1/answer",
-            Some(&json!({
-                "labeller": labeller,
-                "query": query,
-                "choice": choice,
-                "took_ms": 1500,
-                "replays": [1, 0],
-            })),
-        )
-    }
-
-    /// The learner's env steps as the teacher last heard them (waits for a fresh status).
-    fn env_steps(&self, secs: u64) -> u64 {
-        wait_for(
-            secs,
-            || {
-                format!(
-                    "the learner's env steps in /api/v1/status{}",
-                    tail(&self.log)
-                )
-            },
-            || {
-                let r = self.try_call("GET", "/api/v1/status", None).ok()?;
-                (r.status == 200).then(|| r.json()["env_steps"].as_u64())?
-            },
-        )
-    }
-
-    /// A pair for `labeller` (not `exclude`), waiting for the server and the learner's
-    /// first queries.
-    fn pair(&self, labeller: &str, exclude: Option<u64>, secs: u64) -> Value {
-        let path = format!(
-            "/api/v1/next?labeller={}{}",
-            enc(labeller),
-            exclude.map_or(String::new(), |q| format!("&exclude={q}"))
-        );
-        wait_for(
-            secs,
-            || format!("a pair for {labeller}{}", tail(&self.log)),
-            || {
-                let r = self.try_call("GET", &path, None).ok()?;
-                assert!(
-                    r.status == 200 || r.status == 204,
-                    "GET {path}: HTTP {}: {}",
-                    r.status,
-                    r.text()
-                );
-                (r.status == 200).then(|| r.json())
-            },
-        )
-    }
-}
-
-// ---------- the label store ----------
-
-/// `sqlite3 -json` in Python: argv[1] the file (read-only), argv[2] the query.
-const PY_SQL: &str = "import json, sqlite3, sys
-c = sqlite3.connect('file:' + sys.argv[1] + '?mode=ro', uri=True, timeout=5)
-c.row_factory = sqlite3.Row
-rows = [dict(r) for r in c.execute(sys.argv[2])]
-print(json.dumps(rows) if rows else '')";
-
-/// Rows of `query` on the SQLite file `db` (read-only), or why not.
-fn sql(db: &Path, query: &str) -> Result<Vec<Value>, String> {
-    if !db.exists() {
-        return Err(format!("{} does not exist yet", db.display()));
-    }
-    // NOTE: the sqlite3 tool where installed, else Python's sqlite3 module (test 2 needs
-    // python3 anyway).
-    let out = match Command::new("sqlite3")
-        .args(["-readonly", "-json", "-cmd", ".timeout 5000"])
-        .arg(db)
-        .arg(query)
-        .output()
-    {
-        Ok(out) => out,
-        Err(_) => Command::new("python3")
-            .env("PYTHONDONTWRITEBYTECODE", "1")
-            .args(["-c", PY_SQL])
-            .arg(db)
-            .arg(query)
-            .output()
-            .map_err(|e| format!("neither sqlite3 nor python3 runs: {e}"))?,
-    };
-    if !out.status.success() {
-        return Err(format!(
-            "sqlite3 {} {query:?}: {}",
-            db.display(),
-            String::from_utf8_lossy(&out.stderr)
-        ));
-    }
-    let text = String::from_utf8_lossy(&out.stdout);
-    if text.trim().is_empty() {
-        return Ok(Vec::new());
-    }
-    serde_json::from_str(&text).map_err(|e| format!("sqlite3's JSON: {e}: {text}"))
-}
-
-/// The human answers in the label store, in the order stored.
-fn human_answers(db: &Path) -> Result<Vec<Value>, String> {
-    sql(
-        db,
-        "SELECT id, answer, teacher, teacher_id, labeller, took_ms, replays_first, \
-         replays_second, shadow FROM queries \
-         WHERE teacher = 'human' AND answer IS NOT NULL ORDER BY answer_no",
-    )
-}
-
-/// Wait until the store holds `n` human answers (panics on more); then check for
-/// `hold_s` more seconds that no other comes.
-fn wait_for_answers(db: &Path, n: usize, secs: u64, hold_s: u64, log: &Path) -> Vec<Value> {
-    let last = std::cell::RefCell::new(String::new());
-    let rows = wait_for(
-        secs,
-        || {
-            format!(
-                "{n} human answers in the label store (last: {}){}",
-                last.borrow(),
-                tail(log)
-            )
-        },
-        || match human_answers(db) {
-            Ok(rows) => {
-                assert!(rows.len() <= n, "more than {n} answers stored: {rows:?}");
-                *last.borrow_mut() = format!("{rows:?}");
-                (rows.len() == n).then_some(rows)
-            }
-            Err(e) => {
-                *last.borrow_mut() = e;
-                None
-            }
-        },
-    );
-    // NOTE: polled to a deadline: a check that nothing more arrives, not a timing.
-    let until = Instant::now() + Duration::from_secs(hold_s);
-    while Instant::now() < until {
-        let now = human_answers(db).unwrap();
-        assert_eq!(now, rows, "the store changed after holding {n} answers");
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    rows
-}
-
-fn ids(rows: &[Value]) -> Vec<u64> {
-    rows.iter().map(|r| r["id"].as_u64().unwrap()).collect()
-}
-
-// ---------- the labelling page over WebDriver ----------
-
-impl Browser {
-    /// Open the labelling page at `addr` as `labeller`, keeping every resource timing (see
-    /// [`Browser::prefetched`]).
-    fn label(&self, addr: &str, labeller: &str) {
-        self.go(&format!("http://{addr}/?labeller={}", enc(labeller)));
-        self.exec(
-            "performance.setResourceTimingBufferSize(100000); return null;",
-            json!([]),
-        );
-    }
-
-    /// The page's "teacher unreachable" banner shows.
-    fn unreachable(&self) -> bool {
-        self.exec("return !document.getElementById('conn').hidden;", json!([]))
-            .as_bool()
-            .unwrap_or(false)
-    }
-
-    /// `what` with the page's state and the end of `log` (the teacher's), for failures.
-    fn page(&self, what: &str, log: &Path) -> String {
-        format!(
-            "{what} (page: state {:?}, query {:?}, busy {:?}, unreachable {}, message {}){}",
-            self.body("state"),
-            self.body("query"),
-            self.body("busy"),
-            self.unreachable(),
-            self.exec(
-                "return document.getElementById('msg').textContent;",
-                json!([])
-            ),
-            tail(log)
-        )
-    }
-
-    /// Wait until the page reaches its teacher and plays a pair with no answer in flight;
-    /// the pair's query.
-    fn playing(&self, secs: u64, what: &str, log: &Path) -> String {
-        wait_for(
-            secs,
-            || self.page(what, log),
-            || {
-                let q = self.body("query");
-                (self.body("state") == "playing"
-                    && self.body("busy").is_empty()
-                    && !q.is_empty()
-                    && !self.unreachable())
-                .then_some(q)
-            },
-        )
-    }
-
-    /// Wait until the pair after `q` is fetched while `q` plays (answering then shows it
-    /// at once).
-    fn prefetched(&self, q: &str, log: &Path) {
-        wait_for(
-            60,
-            || self.page(&format!("the pair after query {q} prefetched"), log),
-            || {
-                self.exec(
-                    "return performance.getEntriesByType('resource').some((e) => \
-                     e.name.includes('/api/v1/next?') && \
-                     e.name.endsWith('exclude=' + arguments[0]) && e.responseStatus === 200);",
-                    json!([q]),
-                )
-                .as_bool()
-                .unwrap_or(false)
-                .then_some(())
-            },
-        )
-    }
-
-    /// Answer the pair on screen with `key` (`name` in messages) and wait until its POST
-    /// is through and the next pair shows; the answered query.
-    fn press(&self, key: &str, name: &str, log: &Path) -> u64 {
-        let q = self.body("query");
-        self.prefetched(&q, log);
-        self.key(key);
-        wait_for(
-            60,
-            || {
-                self.page(
-                    &format!("{name} on query {q} sent and the next pair shown"),
-                    log,
-                )
-            },
-            || {
-                let now = self.body("query");
-                (self.body("busy").is_empty() && !now.is_empty() && now != q).then_some(now)
-            },
-        );
-        q.parse()
-            .unwrap_or_else(|e| panic!("the page's query {q:?}: {e}"))
-    }
 }
 
 #[test]
@@ -489,7 +129,7 @@ fn browser_labels_with_keys_and_undo_while_training_runs() {
     let q2 = browser.press("=", "=", &train.log);
     let q3 = browser.press("s", "s", &train.log);
     browser.key("u");
-    wait_for(
+    poll(
         60,
         || {
             browser.page(
@@ -562,22 +202,26 @@ fn python_client_answers_a_running_learner() {
     let dir = tempfile::tempdir().unwrap();
     let (addr, out, train) = human_train(dir.path(), "python", &["--undo-s=1", "--repeat-share=0"]);
     let said = dir.path().join("label.out");
-    let mut py = Proc {
-        child: Command::new("python3")
-            .env("PYTHONDONTWRITEBYTECODE", "1")
-            .arg("deploy/label.py")
-            .args(["--url", &format!("http://{addr}")])
-            .args(["--name", "py", "--answer", "alternate", "--count", "3"])
-            .args(["--timeout", "60"])
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .stdout(std::fs::File::create(&said).unwrap())
-            .stderr(std::fs::File::create(dir.path().join("label.err")).unwrap())
-            .spawn()
-            .expect("python3 runs"),
-        log: dir.path().join("label.err"),
-        group: false,
-    };
-    let status = exit_status(&mut py.child, 120, "deploy/label.py");
+    let url = format!("http://{addr}");
+    let args = [
+        "deploy/label.py",
+        "--url",
+        &url,
+        "--name",
+        "py",
+        "--answer",
+        "alternate",
+    ];
+    let mut py = Launch::new(
+        "python3",
+        args.iter().chain(&["--count", "3", "--timeout", "60"]),
+    )
+    .env("PYTHONDONTWRITEBYTECODE", "1")
+    .dir(Path::new(env!("CARGO_MANIFEST_DIR")))
+    .stdout(&said)
+    .log_file(&dir.path().join("label.err"))
+    .spawn();
+    let status = py.exit(120, "deploy/label.py");
     let printed = std::fs::read_to_string(&said).unwrap();
     assert!(
         status.success(),
@@ -615,45 +259,6 @@ fn python_client_answers_a_running_learner() {
 }
 
 const ARROW_LEFT: &str = "\u{E012}";
-
-/// What a person reads on the page for the pair on screen: the strips' numbers of each
-/// attempt and the judged part's length, from the DOM's text (nothing the API sends but the
-/// page does not show).
-const READ_PAGE: &str = "
-    const side = (id) => {
-      const el = document.getElementById(id);
-      const v = (q, k) => Number(el.querySelector(`.strip[data-q=${q}] [data-v=${k}]`).textContent);
-      return {
-        closest: v('distance', 'closest'), distance: v('distance', 'mean'),
-        speed: v('speed', 'mean'), force: v('force', 'mean'),
-        eaten: v('food', 'eaten'), spilled: v('food', 'spilled'), hits: v('food', 'hits'),
-        seconds: Number(el.querySelector('.strips [data-v=\"judged-s\"]').textContent),
-      };
-    };
-    return { query: document.body.dataset.query, left: side('att-left'), right: side('att-right') };";
-
-/// Elements of a row that leave the window or overlap each other, and text cut off.
-const LAYOUT_PROBLEMS: &str = "
-    const out = [];
-    const W = window.innerWidth, H = window.innerHeight;
-    const groups = ['header > *:not([hidden])', '.statusrow > .chip:not([hidden])', '.controls > *',
-                    '.answers > button', 'footer > span', '#att-left .strip .sl > span',
-                    '#att-right .strip .sl > span', 'main > section'];
-    for (const sel of groups) {
-      const els = [...document.querySelectorAll(sel)].filter((e) => e.getClientRects().length);
-      const rs = els.map((e) => e.getBoundingClientRect());
-      rs.forEach((r, i) => {
-        if (r.left < -0.5 || r.right > W + 0.5 || r.bottom > H + 0.5) out.push(sel + ' #' + i + ' leaves the window');
-        if (els[i].scrollWidth > els[i].clientWidth + 1 && getComputedStyle(els[i]).overflow !== 'visible') out.push(sel + ' #' + i + ' is cut off');
-        for (let j = 0; j < i; j++) {
-          const o = rs[j];
-          const w = Math.min(r.right, o.right) - Math.max(r.left, o.left);
-          const h = Math.min(r.bottom, o.bottom) - Math.max(r.top, o.top);
-          if (w > 1 && h > 1) out.push(sel + ' #' + j + ' and #' + i + ' overlap');
-        }
-      });
-    }
-    return out;";
 
 /// The paper profile's ground truth as a person reading the page can weigh it: food eaten
 /// (20 + 0.5 per particle), spilled (-5) and on the person (-2.5), then the distance to the
@@ -719,7 +324,7 @@ fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
             "/window/rect",
             Some(json!({"width": w + fw, "height": 900 + fh})),
         );
-        let problems = wait_for(
+        let problems = poll(
             10,
             || format!("the page laid out at {w}x900"),
             || {
@@ -779,12 +384,10 @@ fn a_labeller_who_reads_only_the_page_agrees_with_the_oracle() {
 /// Python unit tests: food eaten counted from the readout, the lead-in left out).
 #[test]
 fn python_client_summarises_what_the_strips_show() {
-    let out = Command::new("python3")
+    let out = Launch::new("python3", ["-m", "unittest", "deploy/test_label.py"])
         .env("PYTHONDONTWRITEBYTECODE", "1")
-        .args(["-m", "unittest", "deploy/test_label.py"])
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("python3 runs");
+        .dir(Path::new(env!("CARGO_MANIFEST_DIR")))
+        .output();
     assert!(
         out.status.success(),
         "python3 -m unittest deploy/test_label.py: {}\n{}{}",
@@ -803,15 +406,12 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     let addr = format!("127.0.0.1:{}", free_local_port().unwrap());
     let out = dir.path().join("run");
     let run = "sitting";
-    let _train = pbrl(
-        &train_args(
-            &out,
-            run,
-            &["--external-teacher", &format!("--listen={endpoint}")],
-        ),
-        dir.path(),
-        "train",
-    );
+    let listen = format!("--listen={endpoint}");
+    let _train = pbrl(train_args(&out, run, &["--external-teacher", &listen]))
+        .dir(dir.path())
+        .log("train")
+        .rust_log(LOG)
+        .spawn();
     let state = dir.path().join("t.sqlite");
     // NOTE: an undo window of 5 s: the page's answer must still be in it at the kill, after
     // the WebDriver round trips that see its POST through on a loaded 2-core machine.
@@ -829,7 +429,11 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     .iter()
     .map(|s| s.to_string())
     .collect();
-    let mut teacher = pbrl(&teacher_args, dir.path(), "teacher-1");
+    let mut teacher = pbrl(&teacher_args)
+        .dir(dir.path())
+        .log("teacher-1")
+        .rust_log(LOG)
+        .spawn();
     let api = Api {
         addr: addr.clone(),
         token: None,
@@ -861,7 +465,7 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     assert_eq!(r.status, 200, "{}", r.text());
     let r = api.answer("kim", b, "skip");
     assert_eq!(r.status, 200, "{}", r.text());
-    support::signal(&teacher.child, "-KILL");
+    teacher.signal("-KILL");
     let killed_at_ms = pbrl_common::wire::now_ms();
     teacher.child.wait().unwrap();
 
@@ -902,7 +506,7 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     );
     // The page notices (its status poll fails) and says so.
     if let Some(page) = &browser {
-        wait_for(
+        poll(
             60,
             || page.page("the page to say the teacher is unreachable", &teacher.log),
             || page.unreachable().then_some(()),
@@ -910,7 +514,11 @@ fn teacher_killed_mid_sitting_loses_nothing() {
     }
 
     // The teacher comes back on its state file and sends what it kept.
-    let teacher = pbrl(&teacher_args, dir.path(), "teacher-2");
+    let teacher = pbrl(&teacher_args)
+        .dir(dir.path())
+        .log("teacher-2")
+        .rust_log(LOG)
+        .spawn();
     let api = Api {
         log: teacher.log.clone(),
         ..api
@@ -994,20 +602,17 @@ fn bad_http_input_is_refused_and_changes_nothing() {
 
     // Beyond loopback without a token: refused before anything is served.
     let open = format!("0.0.0.0:{}", free_local_port().unwrap());
-    let mut bare = pbrl(
-        &train_args(
-            &dir.path().join("open"),
-            "open",
-            &["--teacher=human", &format!("--http={open}")],
-        ),
-        dir.path(),
+    let http_open = format!("--http={open}");
+    let mut bare = pbrl(train_args(
+        &dir.path().join("open"),
         "open",
-    );
-    let status = exit_status(
-        &mut bare.child,
-        60,
-        "pbrl train --http 0.0.0.0:P without a token",
-    );
+        &["--teacher=human", &http_open],
+    ))
+    .dir(dir.path())
+    .log("open")
+    .rust_log(LOG)
+    .spawn();
+    let status = bare.exit(60, "pbrl train --http 0.0.0.0:P without a token");
     let said = std::fs::read_to_string(&bare.log).unwrap();
     assert!(!status.success(), "it ran: {said}");
     assert!(said.contains("token"), "the error does not say why: {said}");

@@ -18,12 +18,10 @@ use serde_json::Value;
 mod support;
 
 fn pbrl(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .env("RUST_LOG", "warn")
+    let out = support::proc::pbrl(args)
+        .rust_log("warn")
         .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("the pbrl binary runs");
+        .output();
     (
         out.status.success(),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -385,7 +383,8 @@ fn bad_input_is_refused_by_name() {
 #[test]
 #[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
 fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
-    use support::web::{wait_for, Browser, CHROMEDRIVER, CHROMIUM};
+    use support::poll::poll;
+    use support::web::{Browser, CHROMEDRIVER, CHROMIUM};
     let (a, b, root) = runs();
     let out = root.join("watch");
     let html = out.join("a-b.html");
@@ -421,7 +420,7 @@ fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
     let browser = Browser::open(&out);
     browser.go(&format!("file://{}", html.display()));
     assert_eq!(browser.body("mode"), "watch");
-    let first = wait_for(
+    let first = poll(
         30,
         || "the first frame drawn".into(),
         || {
@@ -429,7 +428,7 @@ fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
             (!f.is_empty()).then_some(f)
         },
     );
-    wait_for(
+    poll(
         60,
         || format!("frames to advance from {first}"),
         || {
@@ -440,7 +439,7 @@ fn watch_writes_a_page_that_plays_in_chromium_and_a_gif() {
     // The arrow key steps to the other episode; the strips show its numbers.
     let q = browser.body("query");
     browser.key("\u{E014}");
-    wait_for(
+    poll(
         30,
         || "the next episode".into(),
         || (browser.body("query") != q).then_some(()),

@@ -5,6 +5,7 @@
 mod support;
 
 use support::joined;
+use support::store::store_until;
 
 use std::time::Duration;
 
@@ -89,25 +90,6 @@ fn actor_cfg(run: &str, id: u32) -> ActorConfig {
     }
 }
 
-/// Poll the run's label store until `ready` says yes (at most 60 s).
-async fn store_until(path: &std::path::Path, run: &str, ready: impl Fn(&LabelStore) -> bool) {
-    let start = std::time::Instant::now();
-    loop {
-        if path.exists() {
-            if let Ok(store) = LabelStore::open(path, run) {
-                if ready(&store) {
-                    return;
-                }
-            }
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(60),
-            "the label store never got there"
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_teacher_on_its_own_session_teaches_a_learner_and_bad_answers_are_dropped() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_local_port().unwrap());
@@ -152,11 +134,18 @@ async fn a_teacher_on_its_own_session_teaches_a_learner_and_bad_answers_are_drop
     support::put_all(&foreign, &keys.answer("foreign-0"), &payloads).await;
     // Once the oracle's answer to query 1 is stored, the same query answered again.
     let labels = dir.path().join("labels.sqlite");
-    store_until(&labels, run, |s| {
-        s.labels_since(0)
-            .map(|l| l.iter().any(|r| r.query == 1))
-            .unwrap_or(false)
-    })
+    store_until(
+        &labels,
+        run,
+        "the oracle's answer to query 1",
+        60,
+        None,
+        |s| {
+            s.labels_since(0)
+                .map(|l| l.iter().any(|r| r.query == 1))
+                .unwrap_or(false)
+        },
+    )
     .await;
     support::put_all(
         &foreign,
@@ -236,7 +225,7 @@ async fn a_teacher_killed_and_restarted_loses_nothing_and_training_goes_on() {
 
     // The first teacher answers the first session, then dies outright.
     let first = teacher(&endpoint, run, stop_fut());
-    store_until(&labels, run, |s| {
+    store_until(&labels, run, "20 answers", 60, None, |s| {
         s.counts().map(|c| c.answered >= 20).unwrap_or(false)
     })
     .await;
@@ -244,7 +233,7 @@ async fn a_teacher_killed_and_restarted_loses_nothing_and_training_goes_on() {
     let _ = first.await;
 
     // With no teacher, the next session's queries stay open, and training goes on.
-    store_until(&labels, run, |s| {
+    store_until(&labels, run, "an open query", 60, None, |s| {
         s.counts().map(|c| c.open > 0).unwrap_or(false)
     })
     .await;

@@ -3,36 +3,20 @@
 //! continued: the actors keep their sessions, the run goes on, nothing is lost.
 
 use std::path::Path;
-use std::process::Child;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 mod support;
 
-use support::signal;
+use support::poll::poll;
+use support::proc::{pbrl, Proc};
 
-fn spawn(args: &[&str], log: &Path) -> Child {
+fn spawn(args: &[&str], log: &Path) -> Proc {
     // NOTE: zenoh's transport at debug says when a link's lease expires or a push gives
     // up; pbrl's own lines at info.
-    support::spawn_pbrl(
-        args,
-        log,
-        "warn,pbrl=info,pbrl_actor=info,pbrl_learner=info,zenoh_transport=debug",
-    )
-}
-
-/// Wait for `child` to exit, at most `secs` seconds; true if it exited 0.
-fn exited_ok(child: &mut Child, secs: u64) -> bool {
-    let start = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status.success();
-        }
-        if start.elapsed() > Duration::from_secs(secs) {
-            let _ = child.kill();
-            panic!("a process did not exit within {secs} s");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    pbrl(args)
+        .append_log(log)
+        .rust_log("warn,pbrl=info,pbrl_actor=info,pbrl_learner=info,zenoh_transport=debug")
+        .spawn()
 }
 
 fn rows(curve: &Path) -> Vec<Vec<String>> {
@@ -77,7 +61,7 @@ fn a_learner_stopped_for_30_s_keeps_its_actors_and_loses_nothing() {
         ],
         &dir.path().join("learner.log"),
     );
-    let mut actors: Vec<Child> = (0..2)
+    let mut actors: Vec<Proc> = (0..2)
         .map(|id| {
             spawn(
                 &[
@@ -96,29 +80,31 @@ fn a_learner_stopped_for_30_s_keeps_its_actors_and_loses_nothing() {
         })
         .collect();
     // Training is under way: a row of the curve is written.
-    let start = Instant::now();
-    while rows(&curve).len() < 2 {
-        assert!(start.elapsed() < Duration::from_secs(120), "no curve row");
-        assert!(
-            learner.try_wait().unwrap().is_none(),
-            "the learner exited early"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    signal(&learner, "-STOP");
+    poll(
+        120,
+        || "a curve row".into(),
+        || {
+            assert!(!learner.exited(), "the learner exited early");
+            (rows(&curve).len() >= 2).then_some(())
+        },
+    );
+    learner.signal("-STOP");
     let stopped_at = rows(&curve).len();
     // NOTE: the pause itself is what is tested: three lease-less zenoh defaults long.
     std::thread::sleep(Duration::from_secs(30));
     for a in actors.iter_mut() {
-        assert!(
-            a.try_wait().unwrap().is_none(),
-            "an actor exited while the learner was stopped"
-        );
+        assert!(!a.exited(), "an actor exited while the learner was stopped");
     }
-    signal(&learner, "-CONT");
-    assert!(exited_ok(&mut learner, 300), "the learner finishes");
+    learner.signal("-CONT");
+    assert!(
+        learner.exit(300, "the learner").success(),
+        "the learner finishes"
+    );
     for a in actors.iter_mut() {
-        assert!(exited_ok(a, 60), "the actors stop when told");
+        assert!(
+            a.exit(60, "an actor").success(),
+            "the actors stop when told"
+        );
     }
 
     let rows = rows(&curve);

@@ -2,15 +2,16 @@
 //! killed, stopped, corrupted and resumed.
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
 
 use pbrl_learner::run::run_folder::RunFolder;
 
-fn pbrl(args: &[String]) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pbrl"));
-    c.args(args).env("RUST_LOG", "info");
-    c
+mod support;
+
+use support::poll::poll;
+use support::proc::{Launch, Proc};
+
+fn pbrl(args: &[String]) -> Launch {
+    support::proc::pbrl(args).rust_log("info")
 }
 
 fn train_args(out: &Path, extra: &[&str]) -> Vec<String> {
@@ -32,28 +33,24 @@ fn train_args(out: &Path, extra: &[&str]) -> Vec<String> {
     a
 }
 
-fn spawn(args: &[String]) -> Child {
-    pbrl(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("pbrl starts")
+fn spawn(args: &[String]) -> Proc {
+    pbrl(args).piped().spawn()
 }
 
 /// Wait (polling the folder) until the run has a complete checkpoint; its env steps.
-fn first_checkpoint(folder: &RunFolder, child: &mut Child) -> u64 {
-    let start = Instant::now();
-    loop {
-        if let Some(c) = folder.latest_checkpoint().unwrap() {
-            return c.manifest.env_steps;
-        }
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "the run ended before its first checkpoint"
-        );
-        assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint");
-        std::thread::sleep(Duration::from_millis(5));
-    }
+fn first_checkpoint(folder: &RunFolder, child: &mut Proc) -> u64 {
+    poll(
+        120,
+        || "a checkpoint".into(),
+        || {
+            let c = folder.latest_checkpoint().unwrap();
+            assert!(
+                c.is_some() || !child.exited(),
+                "the run ended before its first checkpoint"
+            );
+            c.map(|c| c.manifest.env_steps)
+        },
+    )
 }
 
 /// The curve's rows: (env steps, policy version).
@@ -85,8 +82,7 @@ fn a_killed_run_resumes_from_its_checkpoint_and_its_curve_has_every_row_once() {
     );
     let mut child = spawn(&args);
     first_checkpoint(&folder, &mut child);
-    child.kill().unwrap();
-    child.wait().unwrap();
+    child.kill();
     let resumed_from = folder
         .latest_checkpoint()
         .unwrap()
@@ -95,7 +91,7 @@ fn a_killed_run_resumes_from_its_checkpoint_and_its_curve_has_every_row_once() {
         .env_steps;
     assert!(resumed_from < 20_000, "the run finished before the kill");
 
-    let out = pbrl(&args).output().unwrap();
+    let out = pbrl(&args).output();
     assert!(out.status.success());
     let log = log(&folder);
     assert!(
@@ -170,7 +166,7 @@ fn a_run_stopped_and_resumed_half_way_ends_bit_identical_to_one_never_stopped() 
             ];
             flags.extend_from_slice(extra);
             let a = train_args(dir, &flags);
-            let out = pbrl(&a).output().unwrap();
+            let out = pbrl(&a).output();
             assert!(
                 out.status.success(),
                 "{}",
@@ -230,26 +226,18 @@ fn sigterm_checkpoints_and_exits_0_a_torn_checkpoint_falls_back_a_contradiction_
     let mut child = spawn(&args);
     let first = first_checkpoint(&folder, &mut child);
     // Wait for a second checkpoint, so that there is one to fall back to.
-    let start = Instant::now();
-    while folder
-        .latest_checkpoint()
-        .unwrap()
-        .unwrap()
-        .manifest
-        .env_steps
-        == first
-    {
-        assert!(start.elapsed() < Duration::from_secs(120));
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    let out = child.wait_with_output().unwrap();
-    assert_eq!(out.status.code(), Some(0));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("stopped at"));
+    poll(
+        120,
+        || "a second checkpoint".into(),
+        || {
+            let c = folder.latest_checkpoint().unwrap().unwrap();
+            (c.manifest.env_steps != first).then_some(())
+        },
+    );
+    child.signal("-TERM");
+    let (status, stdout) = child.finish();
+    assert_eq!(status.code(), Some(0));
+    assert!(stdout.contains("stopped at"));
     let stopped = folder.latest_checkpoint().unwrap().unwrap();
     assert!(stopped.manifest.env_steps < 400_000);
     assert!(folder.finished_steps().unwrap().is_none());
@@ -257,7 +245,7 @@ fn sigterm_checkpoints_and_exits_0_a_torn_checkpoint_falls_back_a_contradiction_
     // Another algorithm on the same folder is refused, naming the field and both values.
     let mut ppo = args.clone();
     ppo.extend(["--algo".to_string(), "ppo".to_string()]);
-    let out = pbrl(&ppo).output().unwrap();
+    let out = pbrl(&ppo).output();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -278,7 +266,7 @@ fn sigterm_checkpoints_and_exits_0_a_torn_checkpoint_falls_back_a_contradiction_
         .skip_while(|s| *s != "--steps")
         .nth(1)
         .unwrap() = total;
-    let out = pbrl(&short).output().unwrap();
+    let out = pbrl(&short).output();
     assert!(
         out.status.success(),
         "{}",

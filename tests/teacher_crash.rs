@@ -14,7 +14,8 @@ use pbrl_learner::pref::labels::LabelStore;
 
 mod support;
 
-use support::signal;
+use support::proc::{pbrl, Proc};
+use support::store::{sql, store_until};
 
 const RUN: &str = "teacher-crash";
 const TEACHER: &str = "noisy-0";
@@ -42,23 +43,9 @@ fn judged(log: &Path) -> Vec<u64> {
         .collect()
 }
 
-/// Wait (to a deadline) until the label store at `path` says yes.
-async fn store_until(path: &Path, what: &str, log: &Path, ready: impl Fn(&LabelStore) -> bool) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(180);
-    loop {
-        if let Ok(store) = LabelStore::open(path, RUN) {
-            if ready(&store) {
-                return;
-            }
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the label store never had {what}; log: {}",
-            log_text(log)
-        );
-        // NOTE: polled to a deadline: waiting for a condition, not a timing.
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+/// `pbrl` with `args`, its log appended to `log` at `filter`.
+fn spawn(args: &[String], log: &Path, filter: &str) -> Proc {
+    pbrl(args).append_log(log).rust_log(filter).spawn()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -101,7 +88,7 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
     .unwrap();
 
     // The learner asks its first session's queries and is killed before anyone answers.
-    let mut learner = support::spawn_pbrl(&learner_args, &train_log, learner_log);
+    let mut learner = spawn(&learner_args, &train_log, learner_log);
     let mut asked: BTreeMap<u64, Query> = BTreeMap::new();
     while asked.len() < 10 {
         let q = tokio::time::timeout(Duration::from_secs(120), queries.next())
@@ -110,12 +97,12 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
             .unwrap();
         asked.insert(q.id, *q);
     }
-    signal(&learner, "-KILL");
-    learner.wait().unwrap();
+    learner.signal("-KILL");
+    learner.wait();
 
     // The teacher answers them (the test asks, as the learner would, until it hears every
     // answer); nobody acknowledges, and it is killed.
-    let mut teacher = support::spawn_pbrl(&teacher_args, &log_1, teacher_log);
+    let mut teacher = spawn(&teacher_args, &log_1, teacher_log);
     let mut given: BTreeMap<u64, Answer> = BTreeMap::new();
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
@@ -141,8 +128,8 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
             }
         }
     }
-    signal(&teacher, "-KILL");
-    teacher.wait().unwrap();
+    teacher.signal("-KILL");
+    teacher.wait();
     let first_judged = judged(&log_1);
     assert_eq!(
         first_judged.iter().copied().collect::<BTreeSet<u64>>(),
@@ -152,31 +139,39 @@ async fn a_scripted_teacher_killed_mid_run_resends_its_answers_and_judges_nothin
     );
     assert_eq!(first_judged.len(), asked.len(), "and each once");
     // Its disk holds every answer it sent, none acknowledged.
-    let kept = support::deploy::sql(
+    let kept = sql(
         &state,
         &format!("SELECT query, acked FROM outbox WHERE teacher = '{TEACHER}' ORDER BY query"),
-    );
+    )
+    .unwrap();
     let kept_ids: Vec<u64> = kept.iter().map(|r| r["query"].as_u64().unwrap()).collect();
     assert_eq!(kept_ids, asked.keys().copied().collect::<Vec<u64>>());
     assert!(kept.iter().all(|r| r["acked"] == 0), "{kept:?}");
 
     // Both come back: the learner asks its open queries again, the teacher sends what it
     // had answered; training goes on to the next sessions.
-    let mut teacher = support::spawn_pbrl(&teacher_args, &log_2, teacher_log);
-    let mut learner = support::spawn_pbrl(&learner_args, &train_log, learner_log);
+    let mut teacher = spawn(&teacher_args, &log_2, teacher_log);
+    let mut learner = spawn(&learner_args, &train_log, learner_log);
     let labels = out.join("labels.sqlite");
     let firsts: Vec<u64> = asked.keys().copied().collect();
-    store_until(&labels, "the first session and two more", &log_2, |s| {
-        s.labels_since(0).is_ok_and(|d| {
-            let stored: BTreeSet<u64> = d.iter().map(|r| r.query).collect();
-            firsts.iter().all(|q| stored.contains(q)) && d.len() >= 3 * firsts.len()
-        })
-    })
+    store_until(
+        &labels,
+        RUN,
+        "the first session and two more",
+        180,
+        Some(&log_2),
+        |s| {
+            s.labels_since(0).is_ok_and(|d| {
+                let stored: BTreeSet<u64> = d.iter().map(|r| r.query).collect();
+                firsts.iter().all(|q| stored.contains(q)) && d.len() >= 3 * firsts.len()
+            })
+        },
+    )
     .await;
-    signal(&learner, "-TERM");
-    learner.wait().unwrap();
-    signal(&teacher, "-TERM");
-    teacher.wait().unwrap();
+    learner.signal("-TERM");
+    learner.wait();
+    teacher.signal("-TERM");
+    teacher.wait();
 
     // Each query was judged once over the two teachers: the second judged only new ones.
     let second_judged = judged(&log_2);

@@ -4,6 +4,8 @@
 
 use std::process::Command;
 
+mod support;
+
 fn tmux(socket: &str, args: &[&str]) -> String {
     let out = Command::new("tmux")
         .arg("-L")
@@ -30,7 +32,7 @@ fn a_training_run_shows_the_bar_and_its_rows_and_no_chatter() {
         "{} train --task=point --steps=6000 --log-every=1000 --unsup-steps=1000 \
          --feedback-interval=1000 --eval-episodes=5 --actors=1 --sync --run=term --out={} \
          2>&1; tmux -L {socket} wait-for -S done",
-        env!("CARGO_BIN_EXE_pbrl"),
+        support::proc::PBRL,
         out.display()
     );
     tmux(

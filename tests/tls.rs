@@ -8,7 +8,6 @@
 //! Needs `zenohd` (`bash deploy/setup.sh` builds it at the zenoh version of Cargo.lock).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -16,7 +15,9 @@ use pbrl_common::connect::{free_local_port, ConnectArgs};
 
 mod support;
 
-use support::deploy::{self, zenohd, Proc};
+use support::deploy::{self, zenohd};
+use support::poll::{poll, poll_async};
+use support::proc::{Launch, Proc};
 
 /// `deploy/certs.sh` into `dir` for run `run` and the router on `port`: the CA, a router,
 /// a learner, an actor, a teacher and the observer (a learner's certificate, given the
@@ -62,28 +63,21 @@ fn certs(dir: &Path, run: &str, port: u16) -> PathBuf {
 
 /// The stock router with `config`, up once it accepts TCP connections on `port`.
 fn router(config: &Path, port: u16, dir: &Path) -> Proc {
-    let log = dir.join("zenohd.log");
-    let child = Command::new(zenohd())
-        .arg("-c")
-        .arg(config)
-        .current_dir(dir)
-        .env("RUST_LOG", "warn,zenoh::net::routing::interceptor=debug")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .expect("zenohd runs");
-    let mut p = Proc(child, log);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        if let Some(status) = p.0.try_wait().unwrap() {
-            panic!(
-                "zenohd exited: {status}: {}",
-                std::fs::read_to_string(&p.1).unwrap()
-            );
-        }
-        assert!(Instant::now() < deadline, "zenohd never listened on {port}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let mut p = Launch::new(zenohd(), [Path::new("-c"), config])
+        .dir(dir)
+        .log("zenohd")
+        .rust_log("warn,zenoh::net::routing::interceptor=debug")
+        .spawn();
+    poll(
+        30,
+        || format!("zenohd to listen on {port}"),
+        || {
+            if let Some(status) = p.child.try_wait().unwrap() {
+                panic!("zenohd exited: {status}: {}", p.log());
+            }
+            std::net::TcpStream::connect(("127.0.0.1", port)).ok()
+        },
+    );
     p
 }
 
@@ -119,15 +113,15 @@ async fn subscribe(s: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<
 
 /// Wait until `seen` holds a sample with `payload` (panics after 30 s).
 async fn until_seen(seen: &Seen, payload: &str, what: &str) {
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while !seen.lock().unwrap().iter().any(|(_, p)| p == payload) {
-        assert!(
-            Instant::now() < deadline,
-            "never saw {what}: {:?}",
-            seen.lock().unwrap()
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    poll_async(
+        30,
+        || format!("{what}: {:?}", seen.lock().unwrap()),
+        || {
+            let seen = seen.lock().unwrap();
+            seen.iter().any(|(_, p)| p == payload).then_some(())
+        },
+    )
+    .await
 }
 
 async fn put(s: &zenoh::Session, key: &str, payload: &str) {

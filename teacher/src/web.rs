@@ -1,9 +1,11 @@
 //! The labelling page and its HTTP/JSON API (version [`PROTOCOL`]), served by the human
-//! teacher. The page is one file with no build step; any client can use the API instead
-//! (`deploy/label.py` is one). The API changes nothing but answers.
+//! teacher. The page is an HTML file, its style sheet and three scripts ([`ASSETS`]) with no
+//! build step; any client can use the API instead (`deploy/label.py` is one). The API
+//! changes nothing but answers.
 //!
 //! ```text
 //! GET  /                                   the page
+//! GET  /label.css, /label.js, /label-draw.js, /label-start.js   its style sheet and scripts
 //! GET  /api/v1/status?labeller=NAME        open queries, answers of NAME, budget left, ...
 //! GET  /api/v1/next?labeller=NAME[&exclude=ID]   a pair to judge (200), or none open (204)
 //! POST /api/v1/answer {"labeller", "query", "choice": left|right|equal|skip,
@@ -42,7 +44,64 @@ pub const PROTOCOL: u32 = 1;
 /// The largest request body read.
 const MAX_BODY: usize = 16 << 10;
 
+/// The page: its HTML, which loads the files of [`ASSETS`] beside it.
 const PAGE: &str = include_str!("../assets/label.html");
+
+/// The page's style sheet and scripts (in the order the page loads them), served beside it
+/// under these names: (name, content type, text). Built into the binary like the page.
+pub const ASSETS: [(&str, &str, &str); 4] = [
+    (
+        "label.css",
+        "text/css; charset=utf-8",
+        include_str!("../assets/label.css"),
+    ),
+    (
+        "label.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../assets/label.js"),
+    ),
+    (
+        "label-draw.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../assets/label-draw.js"),
+    ),
+    (
+        "label-start.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../assets/label-start.js"),
+    ),
+];
+
+/// The page as one file with its style sheet and scripts inline, and `before_scripts` (an
+/// element) just before its first script: what `pbrl watch` writes, with its episodes in
+/// `before_scripts`.
+pub fn page_inline(before_scripts: &str) -> Result<String> {
+    let mut page = PAGE.to_string();
+    for (i, (name, _, text)) in ASSETS.iter().enumerate() {
+        let (tag, inline) = if name.ends_with(".css") {
+            (
+                format!("<link rel=\"stylesheet\" href=\"{name}\">"),
+                format!("<style>\n{text}</style>"),
+            )
+        } else {
+            (
+                format!("<script src=\"{name}\"></script>"),
+                format!("<script>\n{text}</script>"),
+            )
+        };
+        // NOTE: "</" would end the inline element early; the assets hold none.
+        if text.contains("</style") || text.contains("</script") {
+            bail!("{name} holds an end tag: it cannot go inline");
+        }
+        let Some(at) = page.find(&tag) else {
+            bail!("the labelling page does not load {name} ({tag})");
+        };
+        let first_script = i == 1;
+        let before = if first_script { before_scripts } else { "" };
+        page.replace_range(at..at + tag.len(), &format!("{before}{inline}"));
+    }
+    Ok(page)
+}
 
 /// Where and how the page listens. Each default is its flag's.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, clap::Args)]
@@ -244,11 +303,19 @@ pub fn router(web: Web) -> Router {
         .route("/api/v1/answer", post(answer))
         .route("/api/v1/undo", post(undo))
         .route_layer(middleware::from_fn_with_state(web.clone(), guard));
-    Router::new()
-        .route("/", get(page))
+    pages()
         .merge(api)
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(web)
+}
+
+/// The page and its [`ASSETS`], each on its own route with its content type.
+fn pages<S: Clone + Send + Sync + 'static>() -> Router<S> {
+    let mut pages = Router::new().route("/", get(page));
+    for (name, kind, text) in ASSETS {
+        pages = pages.route(&format!("/{name}"), get(move || asset(kind, text)));
+    }
+    pages
 }
 
 /// Let an API call through only with the token, when there is one.
@@ -261,6 +328,18 @@ async fn guard(State(web): State<Web>, req: Request, next: Next) -> Response {
 
 async fn page() -> impl IntoResponse {
     ([(header::CACHE_CONTROL, "no-store")], Html(PAGE))
+}
+
+/// One of the page's [`ASSETS`], not cached either: a page and its scripts always come
+/// from the same build.
+async fn asset(kind: &'static str, text: &'static str) -> impl IntoResponse {
+    (
+        [
+            (header::CONTENT_TYPE, kind),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        text,
+    )
 }
 
 #[derive(Deserialize)]
@@ -580,5 +659,61 @@ mod tests {
             format!("{e:#}").contains("not the episode the learner sent"),
             "{e:#}"
         );
+    }
+
+    #[test]
+    fn the_inline_page_holds_every_asset_and_loads_none() {
+        let page = page_inline("<script id=\"data\"></script>\n").unwrap();
+        for (name, _, text) in ASSETS {
+            assert!(page.contains(text), "{name} is not inline");
+            assert!(
+                !page.contains(&format!("\"{name}\"")),
+                "{name} is still loaded"
+            );
+        }
+        let data = page.find("<script id=\"data\">").unwrap();
+        let first = page.find(ASSETS[1].2).unwrap();
+        assert!(data < first, "the data comes after the first script");
+        assert!(
+            page.find(ASSETS[0].2).unwrap() < data,
+            "the style sheet stays in the head"
+        );
+    }
+
+    /// `GET path` from `addr`, one request on its own connection: the reply's head and body.
+    fn get_raw(addr: std::net::SocketAddr, path: &str) -> (String, String) {
+        use std::io::{Read, Write};
+        let mut s = std::net::TcpStream::connect(addr).unwrap();
+        write!(
+            s,
+            "GET {path} HTTP/1.1\r\nHost: page\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut reply = String::new();
+        s.read_to_string(&mut reply).unwrap();
+        let (head, body) = reply.split_once("\r\n\r\n").unwrap();
+        (head.to_ascii_lowercase(), body.to_string())
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_page_and_its_files_are_served_with_their_types_and_not_cached() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        tokio::spawn(async move { axum::serve(listener, pages::<()>()).await });
+        let mut want = vec![("/".to_string(), "text/html; charset=utf-8", PAGE)];
+        want.extend(ASSETS.iter().map(|(n, k, t)| (format!("/{n}"), *k, *t)));
+        for (path, kind, text) in want {
+            let (head, body) = tokio::task::spawn_blocking(move || get_raw(addr, &path))
+                .await
+                .unwrap();
+            assert!(head.starts_with("http/1.1 200"), "{head}");
+            assert!(head.contains(&format!("content-type: {kind}")), "{head}");
+            assert!(head.contains("cache-control: no-store"), "{head}");
+            assert_eq!(body, text);
+        }
+        let (head, _) = tokio::task::spawn_blocking(move || get_raw(addr, "/label.json"))
+            .await
+            .unwrap();
+        assert!(head.starts_with("http/1.1 404"), "{head}");
     }
 }

@@ -7,9 +7,13 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
+
+use super::poll::poll;
+use super::proc::{pbrl, Launch, Proc, LOG};
+use super::store::sql;
 
 /// The stock router: `PBRL_ZENOHD`, else `$CARGO_HOME/bin/zenohd`, else on the PATH.
 pub fn zenohd() -> PathBuf {
@@ -51,28 +55,6 @@ pub fn certs(dir: &Path, run: &str, listen: Option<&str>, hosts: &[&str]) -> Pat
         .expect("bash runs");
     assert!(status.success(), "deploy/certs.sh: {status}");
     dir.join("router-tls.json5")
-}
-
-/// A child killed and reaped when dropped, with the file its stderr goes to.
-pub struct Proc(pub Child, pub PathBuf);
-
-impl Proc {
-    pub fn log(&self) -> String {
-        std::fs::read_to_string(&self.1).unwrap_or_default()
-    }
-
-    /// SIGKILL, and reaped.
-    pub fn kill(mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
 }
 
 fn ip(args: &[&str]) {
@@ -179,33 +161,6 @@ impl Drop for Hosts {
     }
 }
 
-/// Rows of `query` on the SQLite file `db` as JSON (Python's sqlite3; read-only).
-pub fn sql(db: &Path, query: &str) -> Vec<serde_json::Value> {
-    const PY: &str = "import json, sqlite3, sys
-c = sqlite3.connect('file:' + sys.argv[1] + '?mode=ro', uri=True, timeout=5)
-c.row_factory = sqlite3.Row
-for r in c.execute(sys.argv[2]): print(json.dumps(dict(r)))";
-    let out = Command::new("python3")
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .args(["-c", PY])
-        .arg(db)
-        .arg(query)
-        .output()
-        .expect("python3 runs");
-    assert!(
-        out.status.success(),
-        "{query}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
-}
-
-/// What each process logs: pbrl's own lines, zenoh's warnings.
-const RUST_LOG: &str = "warn,pbrl=info,pbrl_learner=info,pbrl_teacher=info,pbrl_actor=info";
-
 /// Env steps between curve rows.
 pub const LOG_EVERY: u64 = 1_000;
 
@@ -289,27 +244,16 @@ impl Deployment {
         self.path("teacher.sqlite")
     }
 
-    /// `program args` on `host` (`None`: this machine), its stderr to a fresh log `name-k.log`.
-    fn spawn(&mut self, host: Option<String>, program: &Path, args: &[String], name: &str) -> Proc {
+    /// `launch` on `host` (`None`: this machine), in the deployment's folder, its stderr to
+    /// a fresh log `name-k.log`.
+    fn spawn(&mut self, host: Option<String>, launch: Launch, name: &str) -> Proc {
         self.starts += 1;
-        let log = self.path(&format!("{name}-{}.log", self.starts));
-        let mut cmd = match host {
-            Some(h) => {
-                let mut c = Command::new("ip");
-                c.args(["netns", "exec", &h]).arg(program);
-                c
-            }
-            None => Command::new(program),
-        };
-        let child = cmd
-            .args(args)
-            .current_dir(self.dir.path())
-            .env("RUST_LOG", RUST_LOG)
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
+        launch
+            .host(host)
+            .dir(self.dir.path())
+            .log(&format!("{name}-{}", self.starts))
+            .rust_log(LOG)
             .spawn()
-            .unwrap_or_else(|e| panic!("{} runs: {e}", program.display()));
-        Proc(child, log)
     }
 
     fn host(&self, pick: impl Fn(&Hosts) -> &String) -> Option<String> {
@@ -338,7 +282,7 @@ impl Deployment {
             self.certs.join("router-tls.json5").display().to_string(),
         ];
         let host = self.host(|h| &h.router);
-        let p = self.spawn(host, &zenohd(), &args, "zenohd");
+        let p = self.spawn(host, Launch::new(zenohd(), args), "zenohd");
         self.router = Some(p);
     }
 
@@ -375,7 +319,7 @@ impl Deployment {
         ]);
         args.extend(self.connect("learner-server"));
         let host = self.host(|h| &h.learner);
-        let p = self.spawn(host, &pbrl(), &args, "learner");
+        let p = self.spawn(host, pbrl(args), "learner");
         self.learner = Some(p);
     }
 
@@ -388,7 +332,7 @@ impl Deployment {
         ];
         args.extend(self.connect("actor-lab"));
         let host = self.host(|h| &h.workers);
-        let p = self.spawn(host, &pbrl(), &args, &format!("actor{id}"));
+        let p = self.spawn(host, pbrl(args), &format!("actor{id}"));
         self.actors[id] = Some(p);
     }
 
@@ -403,7 +347,7 @@ impl Deployment {
         ];
         args.extend(self.connect("teacher-ward"));
         let host = self.host(|h| &h.workers);
-        let p = self.spawn(host, &pbrl(), &args, "teacher");
+        let p = self.spawn(host, pbrl(args), "teacher");
         self.teacher = Some(p);
     }
 
@@ -464,6 +408,7 @@ impl Deployment {
             &db,
             "SELECT id FROM queries WHERE answer IN ('first', 'second', 'equal', 'skip')",
         )
+        .unwrap()
         .iter()
         .map(|r| r["id"].as_u64().unwrap())
         .collect()
@@ -478,24 +423,20 @@ impl Deployment {
             &self.teacher_state(),
             "SELECT query FROM outbox WHERE repeat = 0",
         )
+        .unwrap()
         .iter()
         .map(|r| r["query"].as_u64().unwrap())
         .collect()
     }
 
-    /// Poll until `ready` (every 200 ms, up to `secs`), or panic with every log; the time
-    /// it took.
+    /// Poll until `ready` (up to `secs`), or panic with every log; the time it took.
     pub fn until(&self, what: &str, secs: u64, ready: impl Fn(&Self) -> bool) -> Duration {
         let t0 = Instant::now();
-        while !ready(self) {
-            assert!(
-                t0.elapsed() < Duration::from_secs(secs),
-                "{what}: not within {secs} s\n{}",
-                self.logs()
-            );
-            // NOTE: polled to a deadline: waiting for an event, not a timing.
-            std::thread::sleep(Duration::from_millis(200));
-        }
+        poll(
+            secs,
+            || format!("{what}\n{}", self.logs()),
+            || ready(self).then_some(()),
+        );
         t0.elapsed()
     }
 
@@ -509,19 +450,11 @@ impl Deployment {
     /// store holds exactly the answers the teacher gave, the whole budget.
     pub fn finish(&mut self, secs: u64) {
         let mut learner = self.learner.take().expect("the learner runs");
-        let t0 = Instant::now();
-        let status = loop {
-            if let Some(s) = learner.0.try_wait().unwrap() {
-                break s;
-            }
-            assert!(
-                t0.elapsed() < Duration::from_secs(secs),
-                "the run did not finish within {secs} s\n{}",
-                self.logs()
-            );
-            // NOTE: polled to a deadline: waiting for the run's end, not a timing.
-            std::thread::sleep(Duration::from_millis(200));
-        };
+        let status = poll(
+            secs,
+            || format!("the run to finish\n{}", self.logs()),
+            || learner.child.try_wait().unwrap(),
+        );
         assert!(status.success(), "the learner: {status}\n{}", self.logs());
         let curve = self.curve();
         let due = (self.steps / LOG_EVERY) as usize;
@@ -539,8 +472,4 @@ impl Deployment {
             self.logs()
         );
     }
-}
-
-fn pbrl() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_pbrl"))
 }

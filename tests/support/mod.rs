@@ -1,8 +1,15 @@
-//! Shared by the integration tests: zenoh's closed transports counted, a config that
-//! closes them sooner, and every kind of bad message.
+//! Shared by the integration tests, the one way each starts processes ([`proc`]), waits
+//! ([`poll`]), reads a store ([`store`]) and meets a page ([`web`], [`page`]); a deployment
+//! through the stock router ([`deploy`]); and here, for in-process runs: zenoh's closed
+//! transports counted, a config that closes them sooner, every kind of bad message, and
+//! small learner configs.
 #![allow(dead_code)] // NOTE: each test file uses its own part.
 
 pub mod deploy;
+pub mod page;
+pub mod poll;
+pub mod proc;
+pub mod store;
 pub mod web;
 
 use pbrl_actor::runner::Task;
@@ -247,29 +254,11 @@ pub async fn put_all(session: &zenoh::Session, key: &str, payloads: &[Vec<u8>]) 
     }
 }
 
-/// A `pbrl` process with `args`, its log (stderr) appended to `log` at `rust_log`.
-pub fn spawn_pbrl<S: AsRef<std::ffi::OsStr>>(
-    args: &[S],
-    log: &std::path::Path,
-    rust_log: &str,
-) -> std::process::Child {
-    let file = std::fs::File::options()
-        .create(true)
-        .append(true)
-        .open(log)
-        .unwrap();
-    std::process::Command::new(env!("CARGO_BIN_EXE_pbrl"))
-        .args(args)
-        .env("RUST_LOG", rust_log)
-        .stdout(std::process::Stdio::null())
-        .stderr(file)
-        .spawn()
-        .expect("the pbrl binary runs")
-}
-
 /// The arguments of the `pbrl train` the crash tests kill: the point task learnt from an
-/// external teacher's preferences, a checkpoint every 600 steps, the first feedback session
-/// at 600, ten queries each, resent after a second; `extra` flags after these.
+/// external teacher's preferences with the default label-efficient settings, a checkpoint
+/// every 600 steps, the first feedback session at 600, a budget of 40 asked over the
+/// sessions of the next 3,000 env steps, queries resent after a second; `extra` flags after
+/// these.
 pub fn crash_learner_args(
     endpoint: &str,
     out: &std::path::Path,
@@ -288,7 +277,11 @@ pub fn crash_learner_args(
         "--log-every=1000",
         "--checkpoint-every=600",
         "--unsup-steps=600",
-        "--queries-per-session=10",
+        // NOTE: the default label-efficient settings (segments, the budget's schedule,
+        // crops, features, hybrid replay), the schedule spanning the first sessions.
+        "--label-efficient",
+        "--max-feedback=40",
+        "--feedback-span=3000",
         "--query-retry-s=1",
     ]
     .iter()
@@ -300,14 +293,4 @@ pub fn crash_learner_args(
         format!("--run={run}"),
     ])
     .collect()
-}
-
-/// Send `sig` (`-STOP`, `-KILL`, ...) to `child`.
-pub fn signal(child: &std::process::Child, sig: &str) {
-    let ok = std::process::Command::new("kill")
-        .args([sig, &child.id().to_string()])
-        .status()
-        .unwrap()
-        .success();
-    assert!(ok, "kill {sig}");
 }

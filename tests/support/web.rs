@@ -1,73 +1,20 @@
-//! A browser and HTTP/1.1 for the tests that meet a page as a person does: headless
-//! Chromium driven over WebDriver (chromedriver), one request per connection over a
-//! `TcpStream`, and the child processes they need, killed when dropped.
+//! A browser and HTTP/1.1 for the tests that meet a page as a person does: one request
+//! per connection over a `TcpStream`, the human teacher's API over it ([`Api`]), and
+//! headless Chromium driven over WebDriver (chromedriver).
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use pbrl_common::connect::free_local_port;
 use serde_json::{json, Value};
 
+use super::poll::poll;
+use super::proc::{tail, Launch, Proc};
+
 pub const CHROMIUM: &str = "/usr/bin/chromium";
 pub const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
-
-/// A child process killed (and reaped) when dropped, so a failed test leaves nothing
-/// running. With `group`, its whole process group goes (chromedriver and its browser).
-pub struct Proc {
-    pub child: Child,
-    pub log: PathBuf,
-    pub group: bool,
-}
-
-impl Proc {
-    pub fn kill(&mut self) {
-        if self.child.try_wait().ok().flatten().is_some() {
-            return;
-        }
-        if self.group {
-            let _ = Command::new("kill")
-                .args(["-KILL", "--", &format!("-{}", self.child.id())])
-                .status();
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    /// The end of its log, for failure messages.
-    pub fn tail(&self) -> String {
-        tail(&self.log)
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
-pub fn tail(path: &Path) -> String {
-    let text = std::fs::read_to_string(path).unwrap_or_default();
-    let start = text.len().saturating_sub(4000);
-    let start = (start..text.len())
-        .find(|i| text.is_char_boundary(*i))
-        .unwrap_or(text.len());
-    format!("\n--- {} (end) ---\n{}", path.display(), &text[start..])
-}
-
-/// Poll `f` every 50 ms until it gives a value; panics after `secs` with `what`.
-pub fn wait_for<T>(secs: u64, what: impl Fn() -> String, mut f: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    loop {
-        if let Some(v) = f() {
-            return v;
-        }
-        assert!(Instant::now() < deadline, "waited {secs} s for {}", what());
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
 
 // ---------- HTTP/1.1 over a TcpStream ----------
 
@@ -210,6 +157,110 @@ fn dechunk(mut rest: &[u8]) -> Option<Vec<u8>> {
     }
 }
 
+// ---------- the human teacher's API ----------
+
+/// Percent-encoding of a query-string value.
+pub fn enc(s: &str) -> String {
+    s.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
+/// The human teacher's API at `addr` (with `token`, every call carries it); `log` is the
+/// serving process's, for failure messages.
+pub struct Api {
+    pub addr: String,
+    pub token: Option<String>,
+    pub log: PathBuf,
+}
+
+impl Api {
+    pub fn try_call(
+        &self,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> std::io::Result<Reply> {
+        let bearer = self.token.as_ref().map(|t| format!("Bearer {t}"));
+        let mut headers = vec![("Content-Type", "application/json")];
+        if let Some(b) = &bearer {
+            headers.push(("Authorization", b.as_str()));
+        }
+        let bytes = body.map(|b| serde_json::to_vec(b).unwrap());
+        http(&self.addr, method, path, &headers, bytes.as_deref())
+    }
+
+    pub fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Reply {
+        self.try_call(method, path, body).unwrap_or_else(|e| {
+            panic!(
+                "{method} http://{}{path}: {e}{}",
+                self.addr,
+                tail(&self.log)
+            )
+        })
+    }
+
+    pub fn answer(&self, labeller: &str, query: u64, choice: &str) -> Reply {
+        self.call(
+            "POST",
+            "/api/v1/answer",
+            Some(&json!({
+                "labeller": labeller,
+                "query": query,
+                "choice": choice,
+                "took_ms": 1500,
+                "replays": [1, 0],
+            })),
+        )
+    }
+
+    /// The learner's env steps as the teacher last heard them (waits for a fresh status).
+    pub fn env_steps(&self, secs: u64) -> u64 {
+        poll(
+            secs,
+            || {
+                format!(
+                    "the learner's env steps in /api/v1/status{}",
+                    tail(&self.log)
+                )
+            },
+            || {
+                let r = self.try_call("GET", "/api/v1/status", None).ok()?;
+                (r.status == 200).then(|| r.json()["env_steps"].as_u64())?
+            },
+        )
+    }
+
+    /// A pair for `labeller` (not `exclude`), waiting for the server and the learner's
+    /// first queries.
+    pub fn pair(&self, labeller: &str, exclude: Option<u64>, secs: u64) -> Value {
+        let path = format!(
+            "/api/v1/next?labeller={}{}",
+            enc(labeller),
+            exclude.map_or(String::new(), |q| format!("&exclude={q}"))
+        );
+        poll(
+            secs,
+            || format!("a pair for {labeller}{}", tail(&self.log)),
+            || {
+                let r = self.try_call("GET", &path, None).ok()?;
+                assert!(
+                    r.status == 200 || r.status == 204,
+                    "GET {path}: HTTP {}: {}",
+                    r.status,
+                    r.text()
+                );
+                (r.status == 200).then(|| r.json())
+            },
+        )
+    }
+}
+
 // ---------- a browser over WebDriver ----------
 
 /// A headless Chromium session through chromedriver; closed (and chromedriver killed with
@@ -242,24 +293,13 @@ impl Browser {
     pub fn open(dir: &Path) -> Self {
         let port = free_local_port().unwrap();
         let log = dir.join("chromedriver.log");
-        let file = std::fs::File::create(&log).unwrap();
-        let child = {
-            use std::os::unix::process::CommandExt;
-            Command::new(CHROMEDRIVER)
-                .arg(format!("--port={port}"))
-                .stdout(file.try_clone().unwrap())
-                .stderr(file)
-                .process_group(0)
-                .spawn()
-                .unwrap_or_else(|e| panic!("{CHROMEDRIVER} does not start: {e}"))
-        };
-        let driver = Proc {
-            child,
-            log,
-            group: true,
-        };
+        let driver = Launch::new(CHROMEDRIVER, [format!("--port={port}")])
+            .log_file(&log)
+            .stdout_to_log()
+            .group()
+            .spawn();
         let addr = format!("127.0.0.1:{port}");
-        wait_for(
+        poll(
             30,
             || format!("chromedriver to be ready{}", driver.tail()),
             || {
