@@ -338,6 +338,48 @@ mod tests {
     }
 
     #[test]
+    fn an_answer_is_kept_together_with_its_companion_change_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = TeacherFile::open(&dir.path().join("t.sqlite")).unwrap();
+        file.lock()
+            .execute_batch("CREATE TABLE desk (query INTEGER)")
+            .unwrap();
+        let mut o = Outbox::open(&file, "t-0").unwrap();
+        let a = person(1, "ada", false);
+        // The companion (the desk taking the answer off) fails: nothing is kept.
+        let err = o
+            .keep_with(&a, 10, |tx| {
+                tx.execute("INSERT INTO desk (query) VALUES (1)", [])?;
+                anyhow::bail!("the desk failed")
+            })
+            .unwrap_err();
+        assert!(err.to_string().contains("the desk failed"), "{err:#}");
+        assert!(!o.holds(&key(&a)));
+        let o = Outbox::open(&file, "t-0").unwrap();
+        assert!(!o.holds(&key(&a)), "nothing of it reached the disk");
+        let rows: i64 = file
+            .lock()
+            .query_row("SELECT count(*) FROM desk", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(rows, 0, "nor of its companion");
+        // Both succeed: both are on disk.
+        let mut o = o;
+        assert!(o
+            .keep_with(&a, 10, |tx| {
+                tx.execute("INSERT INTO desk (query) VALUES (1)", [])?;
+                Ok(())
+            })
+            .unwrap());
+        let o = Outbox::open(&file, "t-0").unwrap();
+        assert!(o.holds(&key(&a)));
+        let rows: i64 = file
+            .lock()
+            .query_row("SELECT count(*) FROM desk", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(rows, 1);
+    }
+
+    #[test]
     fn answers_are_sent_until_acknowledged_and_survive_a_restart() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("t.sqlite");
