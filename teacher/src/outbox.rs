@@ -134,7 +134,17 @@ impl Outbox {
     /// outbox holds it already (then it is not changed); an answer to an older query of the
     /// same id (a learner started over) is replaced.
     pub fn keep(&mut self, a: &Answer, asked_at_ms: u64) -> Result<bool> {
+        if self.holds_asked(a, asked_at_ms) {
+            return Ok(false);
+        }
         self.keep_with(a, asked_at_ms, |_| Ok(()))
+    }
+
+    /// Whether the outbox holds `a` as the answer to the query asked at `asked_at_ms`.
+    fn holds_asked(&self, a: &Answer, asked_at_ms: u64) -> bool {
+        self.kept
+            .get(&key(a))
+            .is_some_and(|k| k.asked_at_ms == asked_at_ms)
     }
 
     /// [`Outbox::keep`], with `also` done in the same transaction (the desk takes the
@@ -147,10 +157,7 @@ impl Outbox {
         also: impl FnOnce(&Transaction<'_>) -> Result<()>,
     ) -> Result<bool> {
         let k = key(a);
-        let held = self
-            .kept
-            .get(&k)
-            .is_some_and(|k| k.asked_at_ms == asked_at_ms);
+        let held = self.holds_asked(a, asked_at_ms);
         let context = || {
             format!(
                 "keeping the answer to query {} in the outbox {}",
