@@ -65,31 +65,19 @@ struct SavedBeforeFeatures {
 /// Decode a checkpoint's `state.bin`: this build's layout, or the one before the comfort
 /// features (its trajectories then have none); the features go back to their candidates.
 pub fn decode_saved(bytes: &[u8]) -> Result<Saved> {
-    let config = bincode::config::standard();
-    let mut saved = match bincode::serde::decode_from_slice::<Saved, _>(bytes, config) {
-        Ok((s, _)) => s,
-        Err(e) => match bincode::serde::decode_from_slice::<SavedBeforeGuard, _>(bytes, config) {
-            Ok((old, _)) => Saved {
-                config: old.config,
-                progress: old.progress,
-                pending: old.pending,
-                backbone: old.backbone,
-                feedback: old.feedback,
-                buffer_features: old.buffer_features,
-                guard: TaskGuard::default(),
-            },
+    fn decode<T: serde::de::DeserializeOwned>(
+        bytes: &[u8],
+    ) -> Result<T, bincode::error::DecodeError> {
+        bincode::serde::decode_from_slice(bytes, bincode::config::standard()).map(|(s, _)| s)
+    }
+    // NOTE: the newest layout first, then each older one, converted up the chain; the
+    // newest's error is the one reported.
+    let mut saved: Saved = match decode::<Saved>(bytes) {
+        Ok(s) => s,
+        Err(e) => match decode::<SavedBeforeGuard>(bytes) {
+            Ok(old) => old.into(),
             Err(_) => {
-                let (old, _): (SavedBeforeFeatures, usize) =
-                    bincode::serde::decode_from_slice(bytes, config).map_err(|_| e)?;
-                Saved {
-                    config: old.config,
-                    progress: old.progress,
-                    pending: old.pending,
-                    backbone: old.backbone,
-                    feedback: old.feedback,
-                    buffer_features: Vec::new(),
-                    guard: TaskGuard::default(),
-                }
+                SavedBeforeGuard::from(decode::<SavedBeforeFeatures>(bytes).map_err(|_| e)?).into()
             }
         },
     };
@@ -98,6 +86,35 @@ pub fn decode_saved(bytes: &[u8]) -> Result<Saved> {
         f.buffer.attach_features(features)?;
     }
     Ok(saved)
+}
+
+impl From<SavedBeforeGuard> for Saved {
+    /// An empty guard: it has seen no episode yet.
+    fn from(old: SavedBeforeGuard) -> Self {
+        Saved {
+            config: old.config,
+            progress: old.progress,
+            pending: old.pending,
+            backbone: old.backbone,
+            feedback: old.feedback,
+            buffer_features: old.buffer_features,
+            guard: TaskGuard::default(),
+        }
+    }
+}
+
+impl From<SavedBeforeFeatures> for SavedBeforeGuard {
+    /// No comfort features: its trajectories had none.
+    fn from(old: SavedBeforeFeatures) -> Self {
+        SavedBeforeGuard {
+            config: old.config,
+            progress: old.progress,
+            pending: old.pending,
+            backbone: old.backbone,
+            feedback: old.feedback,
+            buffer_features: Vec::new(),
+        }
+    }
 }
 
 /// The start and end of a replay segment's range, from its name.
