@@ -96,7 +96,7 @@ pub fn page_inline(before_scripts: &str) -> Result<String> {
         let Some(at) = page.find(&tag) else {
             bail!("the labelling page does not load {name} ({tag})");
         };
-        let first_script = i == 1;
+        let first_script = ASSETS.iter().position(|(n, _, _)| n.ends_with(".js")) == Some(i);
         let before = if first_script { before_scripts } else { "" };
         page.replace_range(at..at + tag.len(), &format!("{before}{inline}"));
     }
