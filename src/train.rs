@@ -12,6 +12,7 @@ use pbrl_learner::run::config;
 use pbrl_learner::run::run_folder::RunFolder;
 use pbrl_learner::run::service::{self, Algo, LearnerConfig};
 use pbrl_teacher::human::HumanConfig;
+use pbrl_teacher::pace::PaceConfig;
 use pbrl_teacher::scripted::{ScriptedConfig, TeacherKind};
 use pbrl_teacher::service::{self as teaching, default_id, TeacherConfig, TeacherSummary};
 use pbrl_teacher::web::HttpConfig;
@@ -232,9 +233,30 @@ pub struct TeacherArgs {
     pub teacher_state: Option<PathBuf>,
     #[command(flatten)]
     pub human: HumanArgs,
+    /// A scripted teacher at a person's pace (it then stands in for a person: the learner
+    /// asks it as it asks people at a page, just in time).
+    #[command(flatten)]
+    pub pace: PaceConfig,
 }
 
 impl TeacherArgs {
+    /// The pace's settings hold, and are for a scripted teacher (people keep their own).
+    fn validate(&self) -> Result<()> {
+        self.pace.validate()?;
+        if self.kind == Who::Human && self.pace.paced() {
+            anyhow::bail!(
+                "--answer-s and --answer-watch pace a scripted teacher; people at the page answer at their own pace"
+            );
+        }
+        Ok(())
+    }
+
+    /// The teacher stands in for a person (people at a page, or a scripted teacher at a
+    /// person's pace).
+    fn is_person(&self) -> bool {
+        self.kind == Who::Human || self.pace.paced()
+    }
+
     fn configs(&self, run: &str, task: Task, seed: u64) -> (TeacherConfig, ScriptedConfig) {
         let kind = match self.kind {
             Who::Scripted(k) => k,
@@ -269,7 +291,9 @@ impl TeacherArgs {
         let (mut cfg, scripted) = self.configs(run, task, seed);
         cfg.state = self.teacher_state.clone().unwrap_or(state);
         match self.kind {
-            Who::Scripted(_) => teaching::run(cfg, scripted, session, shutdown).await,
+            Who::Scripted(_) => {
+                teaching::run_paced(cfg, scripted, self.pace.clone(), session, shutdown).await
+            }
             Who::Human => {
                 if task != Task::Feeding {
                     anyhow::bail!(
@@ -313,6 +337,7 @@ pub struct TeacherProcessArgs {
 
 pub async fn teacher(args: TeacherProcessArgs) -> Result<()> {
     let world = args.world.config()?;
+    args.teacher.validate()?;
     let state = PathBuf::from(format!("teacher-{}.sqlite", args.run));
     let session = args.connect.open().await?;
     let s = args
@@ -495,8 +520,10 @@ impl TrainArgs {
         if let Some(out) = &cfg.out {
             upgrade_stored_world(out)?;
         }
-        // NOTE: a person at the page is asked just in time; scripted teachers as before.
-        if self.teacher.kind == Who::Human && !self.external_teacher {
+        // NOTE: a person at the page (or a scripted teacher at a person's pace) is asked
+        // just in time; scripted teachers as before.
+        self.teacher.validate()?;
+        if self.teacher.is_person() && !self.external_teacher {
             config::apply_preset(&mut cfg, &config::person_preset(), &self.learn.explicit)?;
             cfg.validate()?;
         }

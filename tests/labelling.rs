@@ -879,3 +879,94 @@ fn a_person_every_3_s_is_asked_fresh_pairs_just_in_time() {
         withdrawn.len()
     );
 }
+
+#[test]
+#[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
+fn a_person_the_robot_keeps_time_with_sees_it_stopped_until_they_answer() {
+    let _one = one_at_a_time();
+    assert!(browser_wanted("the keeping-time browser test"));
+    let dir = tempfile::tempdir().unwrap();
+    let budget = 4;
+    let max = format!("--max-feedback={budget}");
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "held",
+        &[
+            "--undo-s=1",
+            "--repeat-share=0",
+            "--feedback-span=0",
+            "--label-slack-steps=0",
+            &max,
+        ],
+    );
+    let api = Api {
+        addr: addr.clone(),
+        token: None,
+        log: train.log.clone(),
+    };
+    let browser = Browser::open(dir.path());
+    browser.label(&addr, "Wen");
+    browser.playing(120, "a pair playing", &train.log);
+    let chip = || {
+        browser
+            .exec(
+                "return document.getElementById('p-training-text').textContent;",
+                json!([]),
+            )
+            .as_str()
+            .unwrap_or("")
+            .to_string()
+    };
+    let held_text = poll(
+        60,
+        || {
+            browser.page(
+                &format!("the page saying the robot stopped (chip: {:?})", chip()),
+                &train.log,
+            )
+        },
+        || {
+            let t = chip();
+            t.contains("stopped").then_some(t)
+        },
+    );
+    assert_eq!(
+        held_text,
+        "the robot has stopped: it waits for your answers"
+    );
+    let status = api.call("GET", "/api/v1/status", None).json();
+    assert_eq!(status["held"], true, "{status}");
+    let held_at = api.env_steps(30);
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("screenshots/labelling");
+    std::fs::create_dir_all(&shots).unwrap();
+    std::fs::write(shots.join("held.png"), browser.screenshot()).unwrap();
+
+    // The person answers: every answer but the last shows the next pair.
+    for k in 0..budget - 1 {
+        browser.press(ARROW_RIGHT, &format!("answer {k}"), &train.log);
+    }
+    assert_eq!(
+        api.env_steps(30),
+        held_at,
+        "the learner ran on while it waited for the person"
+    );
+    browser.key(ARROW_RIGHT);
+    let db = out.join("labels.sqlite");
+    wait_for_answers(&db, budget, 60, 0, &train.log);
+    // Answered and trained on: the robot goes on, and the page says so.
+    poll(
+        120,
+        || format!("the learner going on after the answers{}", train.tail()),
+        || (api.env_steps(30) > held_at).then_some(()),
+    );
+    poll(
+        60,
+        || {
+            browser.page(
+                &format!("the page no longer saying stopped (chip: {:?})", chip()),
+                &train.log,
+            )
+        },
+        || (!chip().contains("stopped")).then_some(()),
+    );
+}

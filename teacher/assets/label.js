@@ -189,9 +189,12 @@ function renderStatus(d) {
   $('p-budget').textContent = fin(d.budget_left) ? String(d.budget_left) : '–';
   if (fin(d.answered)) { S.total = d.answered; renderCounts(); }
   const tr = $('p-training');
-  tr.className = 'chip ' + (d.training ? 'training' : 'idle');
-  $('p-training-text').textContent = d.training ? 'training' : 'learner not running';
-  $('p-waiting').hidden = !d.waiting;
+  // NOTE: a learner that keeps time with the person stops until their answers are in.
+  const held = d.training && d.held === true;
+  tr.className = 'chip ' + (held ? 'wait' : d.training ? 'training' : 'idle');
+  $('p-training-text').textContent = held ? 'the robot has stopped: it waits for your answers'
+    : d.training ? 'training' : 'learner not running';
+  $('p-waiting').hidden = !d.waiting || held;
 }
 
 function renderCounts() {

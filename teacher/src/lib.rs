@@ -8,6 +8,7 @@
 pub mod file;
 pub mod human;
 pub mod outbox;
+pub mod pace;
 pub mod scripted;
 pub mod service;
 pub mod teacher;

@@ -22,6 +22,7 @@ use zenoh::Session;
 use crate::file::TeacherFile;
 use crate::human::{Desk, HumanConfig};
 use crate::outbox::Outbox;
+use crate::pace::{PaceConfig, Paced};
 use crate::scripted::{Scripted, ScriptedConfig, TeacherKind};
 pub use crate::teacher::{AtOnce, Judge, Served, Teacher, TeacherSummary};
 use crate::web::{self, HttpConfig, Web};
@@ -61,6 +62,24 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> Result<TeacherSummary> {
     serve(cfg, Scripted::new(scripted)?, session, shutdown).await
+}
+
+/// Run a scripted teacher of `scripted`'s kind at a person's `pace` until `shutdown`: at
+/// once when the pace says so, else one answer at a time ([`Paced`]).
+pub async fn run_paced(
+    cfg: TeacherConfig,
+    scripted: ScriptedConfig,
+    pace: PaceConfig,
+    session: Session,
+    shutdown: impl Future<Output = ()>,
+) -> Result<TeacherSummary> {
+    if !pace.paced() {
+        return run(cfg, scripted, session, shutdown).await;
+    }
+    let seed = scripted.seed;
+    let teacher = Paced::new(Scripted::new(scripted)?, &cfg.id, pace, seed)?;
+    let file = TeacherFile::open(&cfg.state)?;
+    teach(cfg, teacher, &file, session, shutdown).await
 }
 
 /// Answer queries with `judge`, each at once, until `shutdown`.

@@ -374,6 +374,7 @@ fn status_json(desk: &Desk, labeller: Option<&str>) -> serde_json::Value {
         "training": learner.is_some_and(|(_, training)| training),
         "env_steps": fresh.map(|s| s.env_steps),
         "waiting": fresh.is_some_and(|s| s.waiting),
+        "held": fresh.is_some_and(|s| s.held),
         "labellers": people,
     })
 }

@@ -11,9 +11,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
-/// Version of the wire format; bumped whenever a message changes (9: a query says when it
-/// is withdrawn as stale).
-pub const WIRE_FORMAT: u16 = 9;
+/// Version of the wire format; bumped whenever a message changes (10: the learner's status
+/// says when it stopped to wait for answers).
+pub const WIRE_FORMAT: u16 = 10;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
 /// feeding trajectory about 65 KB); anything larger is dropped and counted unread.
@@ -348,6 +348,9 @@ pub struct LearnerStatus {
     pub budget_left: u64,
     /// A feedback session is due and waits for open queries to be answered.
     pub waiting: bool,
+    /// The learner has stopped (no training, the robot idle) until the answers it keeps
+    /// time with are in and trained on (`--label-slack-steps`, `--label-slack-s`).
+    pub held: bool,
     /// People labelling now (by the teachers' liveliness tokens).
     pub labellers: u32,
 }
@@ -463,7 +466,7 @@ fn decode_formats(run: &str, bytes: &[u8], formats: &[u16]) -> Result<Body, Wire
 }
 
 /// A query as a label store keeps it (the encoded message of an open query): this build's
-/// format; format 7's or 8's (before the withdrawal step; format 8 changed only the
+/// format or format 9's (whose query is laid out as this one's); format 7's or 8's (before the withdrawal step; format 8 changed only the
 /// evaluation steps), read as never withdrawn; or format 6's (before segments), read as
 /// whole-trajectory segments with no R_avg, so that a store of an older build still asks
 /// its open queries.
@@ -477,7 +480,7 @@ pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> 
         Some(6) => old_query::<v6::Query>(run, bytes, 6)?.upgrade(),
         Some(f @ (7 | 8)) => old_query::<v8::Query>(run, bytes, f)?.upgrade(),
         _ => {
-            return match decode(run, bytes)? {
+            return match decode_formats(run, bytes, &[9, WIRE_FORMAT])? {
                 Body::Query(q) => Ok(*q),
                 _ => Err(WireError::Decode("the message is not a query".into())),
             }

@@ -255,6 +255,12 @@ fn a_format_6_query_reads_as_whole_trajectories() {
     let bytes = encode("r", &Body::Query(Box::new(now.clone())));
     assert_eq!(decode_stored_query("r", &bytes).unwrap(), now);
     assert!(!now.stale_at(4_999) && now.stale_at(5_000) && now.stale_at(9_000));
+    // Format 9's query is laid out as this build's (10 changed only the learner's status):
+    // a store of that build still asks its open queries; a receiver refuses the format.
+    let nine = bincode::serde::encode_to_vec((9u16, "r", 5u32, &now), bincode::config::standard())
+        .unwrap();
+    assert!(decode("r", &nine).is_err());
+    assert_eq!(decode_stored_query("r", &nine).unwrap(), now);
     // Format 6's answer (body 6) is not a query.
     let answer =
         bincode::serde::encode_to_vec((6u16, "r", 6u32, &q6), bincode::config::standard()).unwrap();

@@ -129,6 +129,20 @@ pub struct PrefConfig {
     #[arg(long, default_value_t = 0)]
     #[serde(default)]
     pub query_stale_steps: u64,
+    /// Keep time with the teacher: the learner runs at most this many env steps past a
+    /// feedback session whose answers are not all in and trained on, then stops (no
+    /// training, no new weights, the actors idle) until they are (0: it stops at the
+    /// session; unset: it never waits, the default). The sitting's pace then bounds the
+    /// run's, and no session's answers come too late to shape the policy.
+    #[arg(long)]
+    #[serde(default)]
+    pub label_slack_steps: Option<u64>,
+    /// Keep time with the teacher, in seconds: the learner runs at most this long past a
+    /// feedback session whose answers are not all in and trained on, then stops until
+    /// they are (with `--label-slack-steps`, whichever comes first; unset: never).
+    #[arg(long)]
+    #[serde(default)]
+    pub label_slack_s: Option<f64>,
     /// A trajectory is in at most this many open queries at once (0: no bound; `--teacher
     /// human`: 1), so that a person is not shown the same attempt over and over.
     #[arg(long, default_value_t = 0)]

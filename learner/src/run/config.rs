@@ -191,6 +191,15 @@ impl LearnerConfig {
         if !(c.is_finite() && c >= 0.0) {
             return bad("reward_anchor", &c, "must be finite and >= 0");
         }
+        if let Some(s) = p.label_slack_s {
+            if !(s.is_finite() && s >= 0.0) {
+                return bad(
+                    "label_slack_s",
+                    &s,
+                    "must be a number of seconds, 0 or more",
+                );
+            }
+        }
         if p.feedback_interval == 0 {
             return bad("feedback_interval", &0, "must be at least 1");
         }
@@ -423,6 +432,8 @@ pub const RESUMABLE_FIELDS: &[&str] = &[
     "pref.open_per_labeller",
     "pref.query_stale_steps",
     "pref.queries_per_trajectory",
+    "pref.label_slack_steps",
+    "pref.label_slack_s",
 ];
 
 /// Refuse a resume whose config contradicts the stored one (the world and the person's

@@ -51,6 +51,9 @@ pub struct Summary {
     pub feedback: Option<Counters>,
     /// The final policy's tensors (to compare runs).
     pub weights: Option<Weights>,
+    /// Wall time the learner stood still waiting for answers (`--label-slack-steps`,
+    /// `--label-slack-s`), in this process.
+    pub held: Duration,
 }
 
 pub struct Learner {
@@ -70,6 +73,8 @@ pub struct Learner {
     /// The newest trajectory made new weights due; and those weights, once published.
     weights_due: bool,
     published: Option<Weights>,
+    /// Keeping time with the teacher: stopped since then, and for how long in all before.
+    held_since: Option<Instant>,
     summary: Summary,
 }
 
@@ -129,6 +134,7 @@ impl Learner {
             unwritten,
             weights_due: false,
             published: None,
+            held_since: None,
             summary: Summary::default(),
         })
     }
@@ -221,6 +227,47 @@ impl Learner {
         }
         self.weights_due = observed.publish;
         Ok(())
+    }
+
+    /// Keep time with the teacher: whether the learner stands still now (it takes no
+    /// trajectory, so it trains on none and publishes no weights, and the actors idle once
+    /// their credit is spent) until the answers it waits for are in and trained on. The
+    /// deterministic mode waits in its own way.
+    pub fn holding(&mut self) -> bool {
+        let held = !self.cfg.sync
+            && self
+                .feedback
+                .as_ref()
+                .is_some_and(|f| f.holds(self.p.env_steps, Instant::now()));
+        match (held, self.held_since) {
+            (true, None) => {
+                self.held_since = Some(Instant::now());
+                let open = self.feedback.as_ref().map_or(0, |f| f.open());
+                tracing::info!(
+                    env_steps = self.p.env_steps,
+                    open,
+                    "keeping time with the teacher: stopped until the answers are in"
+                );
+                if let Some(bar) = &self.curve.bar {
+                    bar.set_message("stopped: waiting for the teacher's answers");
+                }
+            }
+            (false, Some(since)) => {
+                self.held_since = None;
+                let waited = since.elapsed();
+                self.summary.held += waited;
+                tracing::info!(
+                    env_steps = self.p.env_steps,
+                    waited_s = waited.as_secs(),
+                    "the answers are in: training goes on"
+                );
+                if let Some(bar) = &self.curve.bar {
+                    bar.set_message("");
+                }
+            }
+            _ => {}
+        }
+        held
     }
 
     /// New weights, when the backbone said so.
@@ -414,6 +461,7 @@ impl Learner {
             open: c.open,
             budget_left: f.budget_left(c.spent()),
             waiting: f.waiting(self.p.env_steps)?,
+            held: self.held_since.is_some(),
             labellers: bus.labellers() as u32,
         }))
     }

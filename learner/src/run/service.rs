@@ -34,10 +34,12 @@ pub async fn run(
         if l.done() {
             break false;
         }
+        // Keeping time with the teacher: no trajectory is taken until the answers are in.
+        let holding = l.holding();
         tokio::select! {
             _ = &mut shutdown => break true,
             // A trajectory acted by the newest policy.
-            m = bus.trajectories.next() => {
+            m = bus.trajectories.next(), if !holding => {
                 if let Some(m) = l.take(m?) {
                     l.train(m)?;                    // store its transitions; gradient steps
                     l.publish_weights(&bus).await?; // new weights, when due

@@ -39,8 +39,8 @@ use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment
 use crate::state::RngState;
 pub use choose::Side;
 pub(crate) use open::target;
-use open::InFlight;
 pub use open::Outgoing;
+use open::{AskedAt, InFlight};
 
 /// Counters of the feedback loop (saved with each checkpoint).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -142,6 +142,9 @@ pub struct Feedback {
     /// bound per trajectory allowed (none is tried again before a new one comes).
     observed: u64,
     top_up_stuck_at: Option<u64>,
+    /// When the oldest answer D holds that the ensemble is not trained on yet was asked
+    /// (to keep time with the teacher, [`Feedback::holds`]).
+    untrained_from: Option<AskedAt>,
 }
 
 impl Feedback {
@@ -174,6 +177,7 @@ impl Feedback {
             owed: 0,
             observed: 0,
             top_up_stuck_at: None,
+            untrained_from: None,
             // NOTE: its own stream of the run's seed, apart from the backbone's.
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f00d_0000_0001),
             counters: Counters {
@@ -217,6 +221,9 @@ impl Feedback {
                             // NOTE: asked again at once after a restart.
                             sent: Instant::now() - Duration::from_secs(self.cfg.query_retry_s),
                             keys,
+                            // NOTE: counted from the last session (and from now in
+                            // seconds): a restart does not keep the wall clock.
+                            asked: (self.last_session_at(), Instant::now()),
                         },
                     );
                 }
@@ -382,6 +389,9 @@ impl Feedback {
                 took,
             } => {
                 self.counters.trained_labels = labels;
+                if labels >= self.data.len() {
+                    self.untrained_from = None;
+                }
                 self.counters.trainings += 1;
                 self.counters.accuracy = stats.accuracy;
                 self.counters.accuracy_new = accuracy_new;

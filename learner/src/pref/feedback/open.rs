@@ -42,7 +42,12 @@ pub(super) struct InFlight {
     pub(super) sent: Instant,
     /// Its two trajectories (for the bound on open queries per trajectory).
     pub(super) keys: [TrajKey; 2],
+    /// When it was asked: env steps and wall time (to keep time with the teacher).
+    pub(super) asked: AskedAt,
 }
+
+/// When a query was asked, in env steps and in wall time.
+pub(super) type AskedAt = (u64, Instant);
 
 impl Feedback {
     pub(super) fn segment(&self, id: u64) -> Result<Arc<Segment>> {
@@ -144,6 +149,7 @@ impl Feedback {
                     query: q.clone(),
                     sent: Instant::now(),
                     keys: [a.trajectory.key, b.trajectory.key],
+                    asked: (env_steps, Instant::now()),
                 },
             );
             out.push(q);
@@ -177,6 +183,13 @@ impl Feedback {
             Stored::New | Stored::Late => {
                 let open = self.in_flight.remove(&a.query);
                 if a.preference != Preference::Skip {
+                    if let Some(f) = &open {
+                        // NOTE: the learner keeps time with this answer until it is trained on.
+                        self.untrained_from = Some(match self.untrained_from {
+                            Some(u) if u.0 <= f.asked.0 => u,
+                            _ => f.asked,
+                        });
+                    }
                     let bounds = |s: &Shown| (s.id, (s.start as usize, s.len as usize));
                     let (first, second) = match &open {
                         Some(f) => (bounds(&f.query.first), bounds(&f.query.second)),

@@ -1,5 +1,8 @@
 //! When the feedback loop acts: a session is due, queries are owed, the ensemble is due a
-//! training, the learner waits for labels; the bounds on open queries and the budget.
+//! training, the learner waits for labels or keeps time with them; the bounds on open
+//! queries and the budget.
+
+use std::time::Instant;
 
 use anyhow::Result;
 
@@ -61,5 +64,36 @@ impl Feedback {
     pub(super) fn training_due(&self, env_steps: u64) -> bool {
         self.data.len() > self.counters.trained_labels
             && (self.in_flight.is_empty() || env_steps >= self.counters.next_session_at)
+    }
+
+    /// Keep time with the teacher (`label_slack_steps`, `label_slack_s`): an answer the
+    /// ensemble is not trained on yet (open, or in D) was asked that many env steps or
+    /// seconds ago, or more. The learner then stops until it is in and trained on.
+    pub fn holds(&self, env_steps: u64, now: Instant) -> bool {
+        let (steps, s) = (self.cfg.label_slack_steps, self.cfg.label_slack_s);
+        if steps.is_none() && s.is_none() {
+            return false;
+        }
+        let oldest = self
+            .in_flight
+            .values()
+            .map(|f| f.asked)
+            .chain(self.untrained_from)
+            .min_by_key(|a| a.0);
+        oldest.is_some_and(|(at, when)| {
+            steps.is_some_and(|k| env_steps >= at.saturating_add(k))
+                || s.is_some_and(|k| now.saturating_duration_since(when).as_secs_f64() >= k)
+        })
+    }
+
+    /// Env steps of the last session held (its queries' start, for those asked again after
+    /// a restart).
+    pub(super) fn last_session_at(&self) -> u64 {
+        if self.counters.sessions == 0 {
+            return self.cfg.unsup_steps;
+        }
+        self.counters
+            .next_session_at
+            .saturating_sub(self.cfg.feedback_interval)
     }
 }

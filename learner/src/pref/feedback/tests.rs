@@ -101,6 +101,55 @@ fn open_queries_are_bounded_and_a_due_session_waits_for_answers() {
 }
 
 #[test]
+fn keeping_time_holds_from_the_slack_past_an_ask_until_its_answers_are_trained_on() {
+    let cfg = PrefConfig {
+        unsup_steps: 0,
+        queries_per_session: 2,
+        feedback_interval: 1_000,
+        label_slack_steps: Some(300),
+        label_slack_s: Some(60.0),
+        ..PrefConfig::plain()
+    };
+    let mut f = Feedback::new(&cfg, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
+    for seq in 0..10 {
+        f.observe(&msg(seq));
+    }
+    let t0 = Instant::now();
+    assert!(!f.holds(5_000, t0), "nothing asked: nothing to wait for");
+    let done = f.start(100, true).unwrap().unwrap();
+    let asked = f.finish(done, 100).unwrap().0;
+    assert_eq!(asked.len(), 2);
+    // Asked at 100: the learner may run to 400, or for 60 s.
+    assert!(!f.holds(399, t0));
+    assert!(f.holds(400, t0));
+    assert!(f.holds(100, t0 + Duration::from_secs(61)));
+    // One answer in: the other is still open.
+    for (k, q) in asked.iter().enumerate() {
+        let a = Answer::scripted(q.id, Preference::First, "oracle", "o-0", 1);
+        assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+        // Answered but not trained on: still held.
+        assert!(f.holds(400, t0), "after answer {k}");
+    }
+    let done = f.start(400, true).unwrap().unwrap();
+    assert!(matches!(done, JobDone::Trained { .. }));
+    f.finish(done, 400).unwrap();
+    assert!(!f.holds(400, t0 + Duration::from_secs(61)));
+    // Unset, the learner never waits.
+    let never = PrefConfig {
+        label_slack_steps: None,
+        label_slack_s: None,
+        ..cfg
+    };
+    let mut g = Feedback::new(&never, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
+    for seq in 0..10 {
+        g.observe(&msg(seq));
+    }
+    let done = g.start(100, true).unwrap().unwrap();
+    assert_eq!(g.finish(done, 100).unwrap().0.len(), 2);
+    assert!(!g.holds(u64::MAX, t0 + Duration::from_secs(1_000_000)));
+}
+
+#[test]
 fn with_people_queries_are_asked_just_in_time_and_a_stale_one_is_withdrawn() {
     let cfg = PrefConfig {
         unsup_steps: 0,
