@@ -333,6 +333,7 @@ mod tests {
             second: side,
             r_avg: None,
             withdraw_at_steps: 0,
+            more: Vec::new(),
         }
     }
 

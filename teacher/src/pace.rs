@@ -18,7 +18,7 @@ use rand_distr::{Distribution, LogNormal};
 use serde::{Deserialize, Serialize};
 
 use crate::outbox::Outbox;
-use crate::teacher::{Judge, Teacher};
+use crate::teacher::{judged, Judge, Teacher};
 use crate::web::LEAD_IN_STEPS;
 
 /// Frames a second at which the page plays an attempt at 1x (the world's control rate).
@@ -212,11 +212,9 @@ impl<J: Judge> Paced<J> {
                 break;
             };
             self.queued.remove(&head.query.id);
-            let preference = self.judge.judge(&head.query);
-            let answer = Answer::scripted(
-                head.query.id,
-                preference,
-                &self.judge.kind(),
+            let answer = judged(
+                &mut self.judge,
+                &head.query,
                 &self.id,
                 took.as_millis() as u64,
             );

@@ -317,6 +317,112 @@ impl Scripted {
         }
     }
 
+    /// Rank three or four attempts (their per-step ground-truth rewards), as a pair is
+    /// judged but over all of them: Skip (None) when even the best is poor; the order by
+    /// return (myopic: discounted), drawn by Plackett-Luce with rationality beta where it is
+    /// finite (for two attempts, the Bradley-Terry choice); a mistake swaps one adjacent
+    /// pair of the order with probability eps; the hurried teacher puts the livelier of two
+    /// neighbours too close to tell first; attempts whose returns are within the equal
+    /// threshold of their neighbour in the order share its place. `r_avg` None: the
+    /// teacher's own window of returns shown. Returns each attempt's place, 0 the best.
+    pub fn rank_returns(
+        &mut self,
+        attempts: &[&[f32]],
+        r_avg: Option<f64>,
+        fraction: f64,
+        moves: Option<&[f64]>,
+    ) -> Option<Vec<u8>> {
+        let returns: Vec<f64> = attempts.iter().map(|r| sum(r)).collect();
+        let judgeable = attempts.len() >= 2
+            && attempts.iter().all(|r| !r.is_empty())
+            && returns.iter().all(|r| r.is_finite())
+            && fraction > 0.0
+            && fraction <= 1.0;
+        if !judgeable {
+            return None;
+        }
+        let r_avg = match r_avg {
+            Some(r) if r.is_finite() => r,
+            Some(_) => return None,
+            None => {
+                for &r in &returns {
+                    self.remember(r);
+                }
+                self.r_avg().expect("the window holds this query's returns")
+            }
+        };
+        let cfg = self.cfg.clone();
+        let r_min = cfg.r_min * fraction;
+        let scale = (r_avg - cfg.r_min) * fraction;
+        let best = returns.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        if cfg.delta_skip > 0.0 && best - r_min < scale * cfg.delta_skip {
+            return None;
+        }
+        let utility: Vec<f64> = if cfg.gamma < 1.0 {
+            attempts.iter().map(|r| discounted(r, cfg.gamma)).collect()
+        } else {
+            returns.clone()
+        };
+        // The order, best first.
+        let mut order: Vec<usize> = (0..attempts.len()).collect();
+        match cfg.beta {
+            None => order.sort_by(|&a, &b| utility[b].total_cmp(&utility[a])),
+            Some(beta) => {
+                let mut left = order.clone();
+                order.clear();
+                while left.len() > 1 {
+                    let top = left
+                        .iter()
+                        .map(|&i| beta * utility[i])
+                        .fold(f64::NEG_INFINITY, f64::max);
+                    let w: Vec<f64> = left
+                        .iter()
+                        .map(|&i| (beta * utility[i] - top).exp())
+                        .collect();
+                    let mut u = self.rng.random::<f64>() * w.iter().sum::<f64>();
+                    let mut pick = left.len() - 1;
+                    for (k, wk) in w.iter().enumerate() {
+                        if u < *wk {
+                            pick = k;
+                            break;
+                        }
+                        u -= wk;
+                    }
+                    order.push(left.remove(pick));
+                }
+                order.extend(left);
+            }
+        }
+        if cfg.weber > 0.0 {
+            if let Some(m) = moves {
+                for k in 1..order.len() {
+                    let (a, b) = (order[k - 1], order[k]);
+                    let close = (returns[a] - returns[b]).abs()
+                        < cfg.weber * returns[a].abs().max(returns[b].abs());
+                    if close && m[b] > m[a] {
+                        order.swap(k - 1, k);
+                    }
+                }
+            }
+        }
+        if cfg.eps > 0.0 && self.rng.random::<f64>() < cfg.eps {
+            let k = self.rng.random_range(1..order.len());
+            order.swap(k - 1, k);
+        }
+        let mut places = vec![0u8; attempts.len()];
+        let mut place = 0u8;
+        for k in 0..order.len() {
+            let tied = k > 0
+                && cfg.delta_equal > 0.0
+                && (returns[order[k]] - returns[order[k - 1]]).abs() < scale * cfg.delta_equal;
+            if k > 0 && !tied {
+                place = k as u8;
+            }
+            places[order[k]] = place;
+        }
+        Some(places)
+    }
+
     /// Mean ground-truth return of the last `avg_window` trajectories shown; None before
     /// the first pair.
     pub fn r_avg(&self) -> Option<f64> {
@@ -828,5 +934,67 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("weber = 1.5"));
+    }
+
+    #[test]
+    fn a_ranking_orders_by_return_ties_the_close_and_errs_as_each_teacher_does() {
+        let (a, b, c, d) = ([1.0f32, 1.0], [3.0f32, 3.0], [2.0f32, 2.0], [2.05f32, 2.0]);
+        let four: [&[f32]; 4] = [&a, &b, &c, &d];
+        let mut oracle = table(TeacherKind::Oracle);
+        assert_eq!(
+            oracle.rank_returns(&four, Some(0.0), 1.0, None),
+            Some(vec![3, 0, 2, 1])
+        );
+        // Equal: returns 4.0 and 4.05 are within 0.1 of (R_avg - r_min) = 10.
+        let mut equal = teacher(ScriptedConfig {
+            r_min: -10.0,
+            ..ScriptedConfig::of(TeacherKind::Equal, 1)
+        });
+        assert_eq!(
+            equal.rank_returns(&four, Some(0.0), 1.0, None),
+            Some(vec![3, 0, 1, 1])
+        );
+        // Skip: even the best is poor.
+        let mut skip = teacher(ScriptedConfig {
+            r_min: -10.0,
+            delta_skip: 2.0,
+            ..ScriptedConfig::of(TeacherKind::Skip, 1)
+        });
+        assert_eq!(skip.rank_returns(&four, Some(0.0), 1.0, None), None);
+        // Noisy: Plackett-Luce; a wide gap is ranked as the oracle does nearly always, a
+        // narrow one about half the time.
+        let mut noisy = table(TeacherKind::Noisy);
+        let (lo, hi) = ([0.0f32], [10.0f32]);
+        let (x, y) = ([5.0f32], [5.1f32]);
+        let wide: [&[f32]; 3] = [&lo, &hi, &x];
+        let n = 2000;
+        let best_first = (0..n)
+            .filter(|_| noisy.rank_returns(&wide, Some(0.0), 1.0, None).unwrap()[1] == 0)
+            .count() as f64
+            / n as f64;
+        assert!(best_first > 0.98, "{best_first}");
+        let narrow: [&[f32]; 3] = [&x, &y, &lo];
+        let first_ahead = (0..n)
+            .filter(|_| {
+                let p = noisy.rank_returns(&narrow, Some(0.0), 1.0, None).unwrap();
+                p[0] < p[1]
+            })
+            .count() as f64
+            / n as f64;
+        assert!((first_ahead - sigmoid(-0.1)).abs() < 0.05, "{first_ahead}");
+        // Mistake: one adjacent pair swapped in about eps of the rankings.
+        let mut mistake = table(TeacherKind::Mistake);
+        let wrong = (0..n)
+            .filter(|_| mistake.rank_returns(&four, Some(0.0), 1.0, None).unwrap() != [3, 0, 2, 1])
+            .count() as f64
+            / n as f64;
+        assert!((wrong - 0.1).abs() < 0.03, "{wrong}");
+        // Hurried: of two too close to tell apart, the livelier goes first.
+        let mut hurried = table(TeacherKind::Hurried);
+        let moves = [0.1, 0.1, 0.9, 0.1];
+        assert_eq!(
+            hurried.rank_returns(&four, Some(0.0), 1.0, Some(&moves)),
+            Some(vec![3, 0, 1, 2])
+        );
     }
 }

@@ -45,8 +45,27 @@ pub trait Teacher: Send {
 pub trait Judge: Send {
     /// The kind of teacher, as the label store records it.
     fn kind(&self) -> String;
-    /// Judge a query.
+    /// Judge a pair.
     fn judge(&mut self, q: &Query) -> Preference;
+    /// Rank a query of three or four attempts: each one's place, 0 the best (None: the
+    /// judge cannot tell, an answer of Skip). A judge of pairs only cannot.
+    fn rank(&mut self, q: &Query) -> Option<Vec<u8>> {
+        let _ = q;
+        None
+    }
+}
+
+/// `judge`'s answer to `q` as teacher `id`, which took `took_ms`: a pair's preference, or
+/// a ranking's places.
+pub fn judged<J: Judge + ?Sized>(judge: &mut J, q: &Query, id: &str, took_ms: u64) -> Answer {
+    let kind = judge.kind();
+    if q.more.is_empty() {
+        return Answer::scripted(q.id, judge.judge(q), &kind, id, took_ms);
+    }
+    match judge.rank(q) {
+        Some(places) => Answer::ranked(q.id, places, &kind, id, took_ms),
+        None => Answer::scripted(q.id, Preference::Skip, &kind, id, took_ms),
+    }
 }
 
 impl Judge for Scripted {
@@ -56,6 +75,19 @@ impl Judge for Scripted {
 
     fn judge(&mut self, q: &Query) -> Preference {
         judge_query(self, q)
+    }
+
+    fn rank(&mut self, q: &Query) -> Option<Vec<u8>> {
+        let steps = q.first.steps().max(1) as f64;
+        let truths: Vec<&[f32]> = q.attempts().map(|s| s.segment_truth()).collect();
+        let moves: Option<Vec<f64>> = q.attempts().map(movement).collect();
+        let fraction = truths[0].len() as f64 / steps;
+        self.rank_returns(
+            &truths,
+            q.r_avg.map(f64::from),
+            if q.r_avg.is_some() { fraction } else { 1.0 },
+            moves.as_deref(),
+        )
     }
 }
 
@@ -111,12 +143,12 @@ impl<J: Judge> Teacher for AtOnce<J> {
 
     fn receive(&mut self, q: Query, outbox: &mut Outbox) -> Result<Option<Answer>> {
         let start = Instant::now();
-        let preference = self.judge.judge(&q);
-        let took_ms = start.elapsed().as_millis() as u64;
-        let answer = Answer::scripted(q.id, preference, &self.judge.kind(), &self.id, took_ms);
+        let mut answer = judged(&mut self.judge, &q, &self.id, 0);
+        answer.took_ms = start.elapsed().as_millis() as u64;
         tracing::debug!(
             query = q.id,
-            preference = preference.name(),
+            preference = answer.preference.name(),
+            places = ?answer.ranks,
             "judged a query"
         );
         outbox.keep(&answer, q.asked_at_ms)?;

@@ -1,7 +1,10 @@
 //! What a decoded message must hold beyond its layout: shapes that agree, finite numbers,
 //! names within bounds. Each refusal names the field and the value.
 
-use super::{check_labeller, check_teacher_id, Body, EvalResult, EvalSteps, Query, WireError};
+use super::{
+    check_labeller, check_teacher_id, Answer, Body, EvalResult, EvalSteps, Preference, Query,
+    WireError, MAX_ATTEMPTS,
+};
 
 /// Check a decoded message's body.
 pub(super) fn body(body: &Body) -> Result<(), WireError> {
@@ -22,6 +25,7 @@ pub(super) fn body(body: &Body) -> Result<(), WireError> {
                 });
             }
             check_labeller("labeller", &a.labeller)?;
+            ranks(a)?;
         }
         Body::AnswerAck(a) => {
             check_teacher_id("teacher_id", &a.teacher_id)?;
@@ -30,6 +34,34 @@ pub(super) fn body(body: &Body) -> Result<(), WireError> {
             }
         }
         Body::Status(_) => {}
+    }
+    Ok(())
+}
+
+/// A ranking's places: one per attempt (3 or 4), each a place among them, and the
+/// preference the order of the first two.
+fn ranks(a: &Answer) -> Result<(), WireError> {
+    if a.ranks.is_empty() {
+        return Ok(());
+    }
+    let n = a.ranks.len();
+    let bad = |reason| WireError::Invalid {
+        field: "ranks".into(),
+        value: format!("{:?}", a.ranks),
+        reason,
+    };
+    if !(3..=MAX_ATTEMPTS).contains(&n) {
+        return Err(bad(
+            "a ranking places 3 or 4 attempts (a pair's answer has none)",
+        ));
+    }
+    if a.ranks.iter().any(|&r| r as usize >= n) {
+        return Err(bad("each place must be below the number of attempts"));
+    }
+    if a.preference != Preference::of_places(a.ranks[0], a.ranks[1]) {
+        return Err(bad(
+            "the preference must be the order of the first two attempts",
+        ));
     }
     Ok(())
 }
@@ -107,9 +139,18 @@ fn eval_steps(k: usize, e: &EvalSteps) -> Result<(), WireError> {
     Ok(())
 }
 
-/// Both sides' actions as long as their steps, finite, and a segment within each.
+/// Every attempt's actions as long as its steps, finite, and a segment within each; at
+/// most [`MAX_ATTEMPTS`] attempts.
 fn query(q: &Query) -> Result<(), WireError> {
-    for (side, s) in [("first", &q.first), ("second", &q.second)] {
+    if q.len() > MAX_ATTEMPTS {
+        return Err(WireError::Invalid {
+            field: "more".into(),
+            value: format!("{} attempts", q.len()),
+            reason: "a query shows at most 4 attempts",
+        });
+    }
+    let names = ["first", "second", "more[0]", "more[1]"];
+    for (side, s) in names.iter().zip(q.attempts()) {
         if s.actions.len() != s.steps() * s.act_dim as usize {
             return Err(WireError::Shape {
                 field: format!("{side}.actions"),

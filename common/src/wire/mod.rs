@@ -11,8 +11,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::trajectory::{Outcome, Replay, Trajectory, TrajectoryError};
 
-/// Version of the wire format; bumped whenever a message changes (10: the learner's status
-/// says when it stopped to wait for answers).
+/// Version of the wire format; bumped whenever a message changes (10: a query may show
+/// more than two attempts to rank and an answer may rank them; the learner's status says
+/// when it stopped to wait for answers).
 pub const WIRE_FORMAT: u16 = 10;
 
 /// The largest message a receiver decodes (the paper preset's weights are about 1.1 MB, a
@@ -181,7 +182,8 @@ impl Shown {
     }
 }
 
-/// "Which of these two attempts was better?", asked by the learner of any teacher.
+/// "Which of these two attempts was better?" (or, with more attempts, "rank these"), asked by
+/// the learner of any teacher.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Query {
     /// The label store's id of the query: unique over the run, across restarts.
@@ -203,11 +205,32 @@ pub struct Query {
     /// The learner's env steps at which an unanswered query grows stale and is withdrawn
     /// (0: never): a teacher offers it to nobody new once the learner's status reaches
     /// them, and a person who is judging it may still answer (the answer is stored as
-    /// late). Last, so that a query an older build stored reads as its layout.
+    /// late).
     pub withdraw_at_steps: u64,
+    /// The attempts after the first two, for a ranking of `2 + more.len()` (empty: a pair).
+    /// Last, so that a query an older build stored reads as its layout.
+    pub more: Vec<Shown>,
 }
 
+/// The most attempts a query shows (a ranking of four).
+pub const MAX_ATTEMPTS: usize = 4;
+
 impl Query {
+    /// Every attempt shown, in order: first, second, then `more`.
+    pub fn attempts(&self) -> impl Iterator<Item = &Shown> {
+        [&self.first, &self.second].into_iter().chain(&self.more)
+    }
+
+    /// Attempts shown: 2 for a pair, 3 or 4 for a ranking.
+    pub fn len(&self) -> usize {
+        2 + self.more.len()
+    }
+
+    /// Never: a query shows at least two attempts.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
     /// Withdrawn as stale at `env_steps` of the learner.
     pub fn stale_at(&self, env_steps: u64) -> bool {
         self.withdraw_at_steps != 0 && env_steps >= self.withdraw_at_steps
@@ -274,6 +297,11 @@ pub struct Answer {
     pub shadow: Option<Preference>,
     /// A query asked again to measure consistency and agreement: stored apart from D.
     pub repeat: bool,
+    /// A ranking's places, one per attempt in the query's order: 0 for the best, and the
+    /// same place for attempts as good as each other (empty: a pair's answer, which
+    /// `preference` says). A ranking's `preference` is the order of its first two
+    /// attempts, or Skip where the teacher could not rank them.
+    pub ranks: Vec<u8>,
 }
 
 impl Answer {
@@ -295,6 +323,38 @@ impl Answer {
             replays: [0, 0],
             shadow: None,
             repeat: false,
+            ranks: Vec::new(),
+        }
+    }
+
+    /// A scripted teacher's ranking of a query's attempts by `ranks` (places, 0 best).
+    pub fn ranked(
+        query: u64,
+        ranks: Vec<u8>,
+        teacher: &str,
+        teacher_id: &str,
+        took_ms: u64,
+    ) -> Self {
+        Self {
+            ranks: ranks.clone(),
+            ..Self::scripted(
+                query,
+                Preference::of_places(ranks[0], ranks[1]),
+                teacher,
+                teacher_id,
+                took_ms,
+            )
+        }
+    }
+}
+
+impl Preference {
+    /// First, Second or Equal by two attempts' places in a ranking (0 best).
+    pub fn of_places(first: u8, second: u8) -> Self {
+        match first.cmp(&second) {
+            std::cmp::Ordering::Less => Preference::First,
+            std::cmp::Ordering::Greater => Preference::Second,
+            std::cmp::Ordering::Equal => Preference::Equal,
         }
     }
 }
@@ -466,7 +526,7 @@ fn decode_formats(run: &str, bytes: &[u8], formats: &[u16]) -> Result<Body, Wire
 }
 
 /// A query as a label store keeps it (the encoded message of an open query): this build's
-/// format or format 9's (whose query is laid out as this one's); format 7's or 8's (before the withdrawal step; format 8 changed only the
+/// format; format 9's (pairs only), read as a pair; format 7's or 8's (before the withdrawal step; format 8 changed only the
 /// evaluation steps), read as never withdrawn; or format 6's (before segments), read as
 /// whole-trajectory segments with no R_avg, so that a store of an older build still asks
 /// its open queries.
@@ -479,8 +539,9 @@ pub fn decode_stored_query(run: &str, bytes: &[u8]) -> Result<Query, WireError> 
     let old = match format {
         Some(6) => old_query::<v6::Query>(run, bytes, 6)?.upgrade(),
         Some(f @ (7 | 8)) => old_query::<v8::Query>(run, bytes, f)?.upgrade(),
+        Some(9) => old_query::<v9::Query>(run, bytes, 9)?.upgrade(),
         _ => {
-            return match decode_formats(run, bytes, &[9, WIRE_FORMAT])? {
+            return match decode(run, bytes)? {
                 Body::Query(q) => Ok(*q),
                 _ => Err(WireError::Decode("the message is not a query".into())),
             }
@@ -505,7 +566,7 @@ fn old_query<Q: serde::de::DeserializeOwned>(
     let ((found, found_run, variant, q), _): ((u16, String, u32, Q), usize) =
         bincode::serde::decode_from_slice(bytes, bincode::config::standard())
             .map_err(|e| WireError::Decode(e.to_string()))?;
-    // NOTE: formats 6 to 8 listed Query sixth in Body (index 5), as this one does.
+    // NOTE: formats 6 to 9 listed Query sixth in Body (index 5), as this one does.
     if found != format || variant != 5 {
         return Err(WireError::Decode(format!(
             "a format-{found} message of body {variant} is not a query"
@@ -518,6 +579,41 @@ fn old_query<Q: serde::de::DeserializeOwned>(
         });
     }
     Ok(q)
+}
+
+/// Format 9's query (pairs only), to read open queries that a store of an older build
+/// holds.
+pub mod v9 {
+    use super::*;
+
+    #[derive(Clone, Debug, Serialize, Deserialize)]
+    pub struct Query {
+        pub id: u64,
+        pub session: u64,
+        pub asked_at_ms: u64,
+        pub expires_at_ms: u64,
+        pub first: super::Shown,
+        pub second: super::Shown,
+        pub r_avg: Option<f32>,
+        pub withdraw_at_steps: u64,
+    }
+
+    impl Query {
+        /// This build's query: a pair.
+        pub fn upgrade(self) -> super::Query {
+            super::Query {
+                id: self.id,
+                session: self.session,
+                asked_at_ms: self.asked_at_ms,
+                expires_at_ms: self.expires_at_ms,
+                first: self.first,
+                second: self.second,
+                r_avg: self.r_avg,
+                withdraw_at_steps: self.withdraw_at_steps,
+                more: Vec::new(),
+            }
+        }
+    }
 }
 
 /// Formats 7's and 8's query (before the withdrawal step), to read open queries that a
@@ -548,6 +644,7 @@ pub mod v8 {
                 second: self.second,
                 r_avg: self.r_avg,
                 withdraw_at_steps: 0,
+                more: Vec::new(),
             }
         }
     }
@@ -607,6 +704,7 @@ mod v6 {
                 second: self.second.upgrade(),
                 r_avg: None,
                 withdraw_at_steps: 0,
+                more: Vec::new(),
             }
         }
     }

@@ -143,6 +143,7 @@ fn a_segment_outside_its_trajectory_is_refused() {
             second: shown(2, 4),
             r_avg: Some(-80.0),
             withdraw_at_steps: 0,
+            more: Vec::new(),
         }))
     };
     let mut s = shown(1, 4);
@@ -215,6 +216,7 @@ fn a_format_6_query_reads_as_whole_trajectories() {
             second: shown(2, 4),
             r_avg: None,
             withdraw_at_steps: 0,
+            more: Vec::new(),
         }
     );
     assert!(matches!(
@@ -278,6 +280,7 @@ fn queries_and_answers_round_trip_and_bad_ones_are_refused() {
         second: shown(2, 4),
         r_avg: None,
         withdraw_at_steps: 0,
+        more: Vec::new(),
     }));
     assert_eq!(decode("r", &encode("r", &q)).unwrap(), q);
     let mut bad = shown(1, 4);
@@ -295,6 +298,7 @@ fn queries_and_answers_round_trip_and_bad_ones_are_refused() {
                 second: bad,
                 r_avg: None,
                 withdraw_at_steps: 0,
+                more: Vec::new(),
             })),
         ),
     )
@@ -312,5 +316,54 @@ fn queries_and_answers_round_trip_and_bad_ones_are_refused() {
         Preference::Skip,
     ] {
         assert_eq!(Preference::parse(p.name()), Some(p));
+    }
+}
+
+#[test]
+fn a_ranking_round_trips_and_bad_places_name_their_field() {
+    let mut q = Query {
+        id: 4,
+        session: 2,
+        asked_at_ms: 1,
+        expires_at_ms: 0,
+        first: shown(1, 4),
+        second: shown(2, 4),
+        r_avg: Some(-10.0),
+        withdraw_at_steps: 0,
+        more: vec![shown(3, 4), shown(4, 4)],
+    };
+    assert_eq!(q.len(), 4);
+    assert_eq!(q.attempts().map(|s| s.id).collect::<Vec<_>>(), [1, 2, 3, 4]);
+    let body = Body::Query(Box::new(q.clone()));
+    assert_eq!(decode("r", &encode("r", &body)).unwrap(), body);
+    let mut bad = shown(5, 4);
+    bad.len = 9;
+    q.more[1] = bad;
+    let e = decode("r", &encode("r", &Body::Query(Box::new(q.clone())))).unwrap_err();
+    assert!(e.to_string().contains("more[1].start"), "{e}");
+    q.more = vec![shown(3, 4); 3];
+    let e = decode("r", &encode("r", &Body::Query(Box::new(q)))).unwrap_err();
+    assert!(e.to_string().contains("more is \"5 attempts\""), "{e}");
+
+    // Places, ties allowed; the preference is the first two's order.
+    let a = Answer::ranked(4, vec![1, 0, 1, 2], "oracle", "oracle-0", 3);
+    assert_eq!(a.preference, Preference::Second);
+    let body = Body::Answer(a.clone());
+    assert_eq!(decode("r", &encode("r", &body)).unwrap(), body);
+    for (ranks, preference, why) in [
+        (vec![0, 1], Preference::First, "3 or 4"),
+        (vec![0, 1, 3], Preference::First, "below the number"),
+        (vec![0, 1, 2], Preference::Second, "order of the first two"),
+    ] {
+        let bad = Answer {
+            ranks,
+            preference,
+            ..a.clone()
+        };
+        let e = decode("r", &encode("r", &Body::Answer(bad))).unwrap_err();
+        assert!(
+            e.to_string().contains("ranks") && e.to_string().contains(why),
+            "{e}"
+        );
     }
 }

@@ -61,6 +61,12 @@ pub struct PrefConfig {
     /// How queries are chosen among the candidates (the first session is always uniform).
     #[arg(long, value_enum, default_value = "disagreement")]
     pub sampler: Sampler,
+    /// Attempts each query shows: 2 asks which of two was better (B-Pref's pairs); 3 or 4
+    /// ask the teacher to rank them, ties allowed, as one answer (learnt from as all its
+    /// pairs). A ranking counts once against the budget.
+    #[arg(long, default_value_t = 2)]
+    #[serde(default = "two")]
+    pub query_attempts: usize,
     /// Queries in all (the budget; skipped ones count). Then the reward model is frozen.
     /// The default is what a person gives in one sitting of about a quarter of an hour;
     /// `--preset paper` keeps the authors' 50,000 (PrefPPO 10,000).
@@ -178,6 +184,10 @@ pub struct PrefConfig {
     pub pseudo_tau: f64,
     #[command(flatten)]
     pub model: RewardModelConfig,
+}
+
+fn two() -> usize {
+    2
 }
 
 fn pseudo_tau() -> f64 {

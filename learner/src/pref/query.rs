@@ -245,6 +245,22 @@ pub fn candidate_pairs(rng: &mut impl Rng, len: usize, n: usize) -> Result<Vec<(
         .collect())
 }
 
+/// `n` candidate sets of `k` distinct items each, drawn uniformly from `len` items (with
+/// replacement across sets), each in the order drawn. Fails if `len < k`.
+pub fn candidate_sets(
+    rng: &mut impl Rng,
+    len: usize,
+    k: usize,
+    n: usize,
+) -> Result<Vec<Vec<usize>>> {
+    if len < k {
+        bail!("candidate sets of {k} need at least {k} trajectories in the annotation buffer, it holds {len}");
+    }
+    Ok((0..n)
+        .map(|_| rand::seq::index::sample(rng, len, k).into_vec())
+        .collect())
+}
+
 /// The score [`select`] ranks pairs by: for `Disagreement` the population std across
 /// members (numpy's `std`, ddof 0) of `probs[m][p]`; for `Entropy` the binary entropy (in
 /// nats) of the members' mean; all zeros for `Uniform`.

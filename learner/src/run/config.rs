@@ -167,6 +167,13 @@ impl LearnerConfig {
         if !(p.rho.is_finite() && (0.0..1.0).contains(&p.rho)) {
             return bad("rho", &p.rho, "must be in [0, 1)");
         }
+        if !(2..=pbrl_common::wire::MAX_ATTEMPTS).contains(&p.query_attempts) {
+            return bad(
+                "query_attempts",
+                &p.query_attempts,
+                "must be 2 (pairs), 3 or 4 (rankings)",
+            );
+        }
         if p.queries_per_session == 0 {
             return bad("queries_per_session", &0, "must be at least 1");
         }

@@ -564,6 +564,7 @@ impl Desk {
             replays,
             shadow,
             repeat,
+            ranks: Vec::new(),
         }
     }
 

@@ -27,6 +27,7 @@ pub(crate) fn query(id: u64, first: f32, second: f32) -> Query {
         second: side(1, second),
         r_avg: None,
         withdraw_at_steps: 0,
+        more: Vec::new(),
     }
 }
 

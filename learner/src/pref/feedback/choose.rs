@@ -1,6 +1,7 @@
-//! Choosing a session's queries: the sides (segments) of candidate pairs drawn from the
-//! annotation buffer, the session's R_avg, and the sampler's pick within the bound on open
-//! queries per trajectory.
+//! Choosing a session's queries: the sides (segments) of candidate pairs (or, for
+//! rankings, of candidate sets of three or four attempts) drawn from the annotation buffer,
+//! the session's R_avg, and the sampler's pick within the bound on open queries per
+//! trajectory. A set's score is the mean of its pairs'.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -10,7 +11,9 @@ use rand::Rng;
 
 use super::{Feedback, Job, JobDone};
 use crate::pref::config::SegmentStart;
-use crate::pref::query::{candidate_pairs, select, Candidate, Sampler, TrajKey};
+use crate::pref::query::{
+    candidate_pairs, candidate_sets, scores, select, Candidate, Sampler, TrajKey,
+};
 use crate::pref::reward_model::Segment;
 
 /// One side of a query: a segment of a trajectory in the annotation buffer.
@@ -109,7 +112,7 @@ impl Feedback {
         let mut open: HashMap<TrajKey, u64> = HashMap::new();
         if cap > 0 {
             for f in self.in_flight.values() {
-                for key in f.keys {
+                for &key in &f.keys {
                     *open.entry(key).or_default() += 1;
                 }
             }
@@ -121,19 +124,29 @@ impl Feedback {
             r => r.clamp(2, held.max(2)).min(held),
         };
         let offset = held - recent;
-        let idx = candidate_pairs(&mut self.rng, recent, n)?;
-        let mut candidates: Vec<(Side, Side)> = Vec::with_capacity(idx.len());
-        for (i, j) in idx {
-            let (a, b) = (
-                self.buffer.get(offset + i).clone(),
-                self.buffer.get(offset + j).clone(),
-            );
-            candidates.push((self.side(&a), self.side(&b)));
+        // NOTE: a ranking shows as many attempts as the newest trajectories allow.
+        let attempts = self.cfg.query_attempts.clamp(2, recent.max(2));
+        let idx: Vec<Vec<usize>> = if attempts == 2 {
+            candidate_pairs(&mut self.rng, recent, n)?
+                .into_iter()
+                .map(|(i, j)| vec![i, j])
+                .collect()
+        } else {
+            candidate_sets(&mut self.rng, recent, attempts, n)?
+        };
+        let mut candidates: Vec<Vec<Side>> = Vec::with_capacity(idx.len());
+        for set in idx {
+            let trajectories: Vec<Arc<Candidate>> = set
+                .iter()
+                .map(|&i| self.buffer.get(offset + i).clone())
+                .collect();
+            candidates.push(trajectories.iter().map(|c| self.side(c)).collect());
         }
         if cap > 0 {
-            candidates.retain(|(a, b)| {
-                open.get(&a.trajectory.key).copied().unwrap_or(0) < cap
-                    && open.get(&b.trajectory.key).copied().unwrap_or(0) < cap
+            candidates.retain(|sides| {
+                sides
+                    .iter()
+                    .all(|s| open.get(&s.trajectory.key).copied().unwrap_or(0) < cap)
             });
         }
         let r_avg = self.r_avg();
@@ -142,15 +155,16 @@ impl Feedback {
             let ranked = if sampler == Sampler::Uniform {
                 (0..candidates.len()).collect()
             } else {
-                let probs = model.preference_probs(&distinct_pairs(&candidates).pairs())?;
-                select(sampler, &probs, candidates.len(), candidates.len())
+                let d = distinct_sets(&candidates);
+                let probs = model.preference_probs(&d.pairs())?;
+                rank_sets(sampler, &probs, candidates.len(), attempts)
             };
             let chosen = within_cap(&candidates, ranked, k, cap, open);
             Ok(JobDone::Chosen {
                 session,
                 env_steps,
                 sampler,
-                pairs: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
+                sets: chosen.into_iter().map(|i| candidates[i].clone()).collect(),
                 r_avg,
                 quota,
                 top_up,
@@ -159,10 +173,35 @@ impl Feedback {
     }
 }
 
+/// Candidate sets of `attempts` each in the sampler's order, best first: for pairs, as
+/// [`select`]; for larger sets, by the mean of their pairs' scores (a NaN last; equal
+/// scores keep the lower index first). `probs[m]` holds member m's predictions on every
+/// set's pairs, set by set, in [`distinct_sets`]' order.
+pub(super) fn rank_sets(
+    sampler: Sampler,
+    probs: &[Vec<f32>],
+    n_sets: usize,
+    attempts: usize,
+) -> Vec<usize> {
+    if attempts == 2 {
+        return select(sampler, probs, n_sets, n_sets);
+    }
+    let per = attempts * (attempts - 1) / 2;
+    let pair_scores = scores(sampler, probs, n_sets * per);
+    let s: Vec<f64> = pair_scores
+        .chunks(per)
+        .map(|c| c.iter().sum::<f64>() / per as f64)
+        .map(|x| if x.is_nan() { f64::NEG_INFINITY } else { x })
+        .collect();
+    let mut order: Vec<usize> = (0..n_sets).collect();
+    order.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
+    order
+}
+
 /// The candidates to keep, `k` at most, in the order `ranked`, such that no trajectory is in
 /// more than `cap` open queries (0: no bound), `open` counting those open already.
 pub(super) fn within_cap(
-    candidates: &[(Side, Side)],
+    candidates: &[Vec<Side>],
     ranked: Vec<usize>,
     k: usize,
     cap: u64,
@@ -176,16 +215,15 @@ pub(super) fn within_cap(
         if out.len() >= k {
             break;
         }
-        let (a, b) = (
-            candidates[i].0.trajectory.key,
-            candidates[i].1.trajectory.key,
-        );
+        let keys: Vec<TrajKey> = candidates[i].iter().map(|s| s.trajectory.key).collect();
         let n = |key: &TrajKey| open.get(key).copied().unwrap_or(0);
-        if a == b || n(&a) >= cap || n(&b) >= cap {
+        let repeats = (1..keys.len()).any(|k| keys[..k].contains(&keys[k]));
+        if repeats || keys.iter().any(|key| n(key) >= cap) {
             continue;
         }
-        *open.entry(a).or_default() += 1;
-        *open.entry(b).or_default() += 1;
+        for key in keys {
+            *open.entry(key).or_default() += 1;
+        }
         out.push(i);
     }
     out
@@ -209,10 +247,22 @@ impl Distinct {
 
 /// One segment per distinct side of `candidates`: the ensemble judges each once.
 pub(super) fn distinct_pairs(candidates: &[(Side, Side)]) -> Distinct {
+    distinct(candidates.iter().map(|(a, b)| (a, b)))
+}
+
+/// Every pair of every set of `sets` (set by set, `(i, j)` with `i < j`), one segment per
+/// distinct side.
+pub(super) fn distinct_sets(sets: &[Vec<Side>]) -> Distinct {
+    distinct(sets.iter().flat_map(|set| {
+        (0..set.len()).flat_map(move |i| (i + 1..set.len()).map(move |j| (&set[i], &set[j])))
+    }))
+}
+
+fn distinct<'a>(pairs: impl Iterator<Item = (&'a Side, &'a Side)>) -> Distinct {
     let mut index: HashMap<(*const Candidate, usize, usize), usize> = HashMap::new();
     let mut segs: Vec<Segment> = Vec::new();
-    let mut sides = Vec::with_capacity(candidates.len());
-    for (a, b) in candidates {
+    let mut sides = Vec::new();
+    for (a, b) in pairs {
         let mut at = |s: &Side| {
             let key = (Arc::as_ptr(&s.trajectory), s.start, s.len);
             *index.entry(key).or_insert_with(|| {

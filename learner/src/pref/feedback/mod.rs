@@ -85,13 +85,13 @@ type Job = Box<dyn FnOnce() -> Result<JobDone> + Send>;
 
 /// What a background job hands back.
 pub enum JobDone {
-    /// The pairs chosen for session `session`, and the session's R_avg; `quota` is what
-    /// the session (or, `top_up`, what it still owed) asked for.
+    /// The pairs (or sets to rank) chosen for session `session`, and the session's R_avg;
+    /// `quota` is what the session (or, `top_up`, what it still owed) asked for.
     Chosen {
         session: u64,
         env_steps: u64,
         sampler: Sampler,
-        pairs: Vec<(Side, Side)>,
+        sets: Vec<Vec<Side>>,
         r_avg: Option<f32>,
         quota: u64,
         top_up: bool,
@@ -198,22 +198,17 @@ impl Feedback {
     fn reload(&mut self) -> Result<()> {
         self.data.clear();
         for row in self.store.labels_since(0)? {
-            let first = self.labelled_side(row.first, row.first_segment)?;
-            let second = self.labelled_side(row.second, row.second_segment)?;
-            self.data.push(Labelled {
-                first,
-                second,
-                target: target(row.preference),
-            });
+            let labels = self.labelled(&row.attempts(), row.preference, &row.ranks)?;
+            self.data.extend(labels);
         }
         self.in_flight.clear();
         for (id, _, bytes) in self.store.open_queries()? {
             match wire::decode_stored_query(&self.run, &bytes) {
                 Ok(q) => {
-                    let keys = [
-                        self.store.trajectory_key(q.first.id)?,
-                        self.store.trajectory_key(q.second.id)?,
-                    ];
+                    let keys = q
+                        .attempts()
+                        .map(|s| self.store.trajectory_key(s.id))
+                        .collect::<Result<Vec<_>>>()?;
                     self.in_flight.insert(
                         id,
                         InFlight {
@@ -338,12 +333,12 @@ impl Feedback {
                 session,
                 env_steps,
                 sampler,
-                pairs,
+                sets,
                 r_avg,
                 quota,
                 top_up,
             } => {
-                let queries = self.ask(session, env_steps, sampler, &pairs, r_avg)?;
+                let queries = self.ask(session, env_steps, sampler, &sets, r_avg)?;
                 let asked = queries.len() as u64;
                 if top_up {
                     self.owed = self.owed.saturating_sub(asked);

@@ -40,8 +40,8 @@ impl std::ops::Deref for Outgoing {
 pub(super) struct InFlight {
     pub(super) query: Outgoing,
     pub(super) sent: Instant,
-    /// Its two trajectories (for the bound on open queries per trajectory).
-    pub(super) keys: [TrajKey; 2],
+    /// Its trajectories (for the bound on open queries per trajectory).
+    pub(super) keys: Vec<TrajKey>,
     /// When it was asked: env steps and wall time (to keep time with the teacher).
     pub(super) asked: AskedAt,
 }
@@ -86,23 +86,55 @@ impl Feedback {
         Ok(Arc::new(whole.cut(start, len, steps)))
     }
 
-    /// Record the chosen pairs in the label store (each query committed before it is sent)
-    /// and return the queries.
+    /// What one answer adds to D: a pair's label, or every pair of a ranking's attempts
+    /// (`attempts` as trajectory ids and segments), each with the target its places give.
+    pub(super) fn labelled(
+        &mut self,
+        attempts: &[(u64, (usize, usize))],
+        preference: Preference,
+        ranks: &[u8],
+    ) -> Result<Vec<Labelled>> {
+        let sides = attempts
+            .iter()
+            .map(|&(id, seg)| self.labelled_side(id, seg))
+            .collect::<Result<Vec<_>>>()?;
+        if ranks.is_empty() {
+            return Ok(vec![Labelled {
+                first: sides[0].clone(),
+                second: sides[1].clone(),
+                target: target(preference),
+            }]);
+        }
+        let mut out = Vec::with_capacity(sides.len() * (sides.len() - 1) / 2);
+        for i in 0..sides.len() {
+            for j in i + 1..sides.len() {
+                out.push(Labelled {
+                    first: sides[i].clone(),
+                    second: sides[j].clone(),
+                    target: target(Preference::of_places(ranks[i], ranks[j])),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// Record the chosen pairs (or sets to rank) in the label store (each query committed
+    /// before it is sent) and return the queries.
     pub(super) fn ask(
         &mut self,
         session: u64,
         env_steps: u64,
         sampler: Sampler,
-        pairs: &[(Side, Side)],
+        sets: &[Vec<Side>],
         r_avg: Option<f32>,
     ) -> Result<Vec<Outgoing>> {
-        let mut out = Vec::with_capacity(pairs.len());
+        let mut out = Vec::with_capacity(sets.len());
         let sampler_name = match sampler {
             Sampler::Uniform => "uniform",
             Sampler::Disagreement => "disagreement",
             Sampler::Entropy => "entropy",
         };
-        for (a, b) in pairs {
+        for set in sets {
             let asked_at_ms = now_ms();
             let mut built = None;
             let run = self.run.clone();
@@ -114,23 +146,29 @@ impl Feedback {
                 0 => 0,
                 s => env_steps + s,
             };
-            let asked = self.store.ask(
+            let attempts: Vec<StoredTrajectory<'_>> = set.iter().map(stored).collect();
+            let attempts: Vec<&StoredTrajectory<'_>> = attempts.iter().collect();
+            let asked = self.store.ask_attempts(
                 session,
                 sampler_name,
                 env_steps,
                 asked_at_ms,
-                &stored(a),
-                &stored(b),
-                |id, first, second| {
+                &attempts,
+                |id, ids| {
                     let q = Query {
                         id,
                         session,
                         asked_at_ms,
                         expires_at_ms,
-                        first: shown(a, first),
-                        second: shown(b, second),
+                        first: shown(&set[0], ids[0]),
+                        second: shown(&set[1], ids[1]),
                         r_avg,
                         withdraw_at_steps,
+                        more: set[2..]
+                            .iter()
+                            .zip(&ids[2..])
+                            .map(|(s, &id)| shown(s, id))
+                            .collect(),
                     };
                     let out = Outgoing::encode(&run, q);
                     let bytes = out.message.to_vec();
@@ -139,16 +177,16 @@ impl Feedback {
                 },
             )?;
             let q = built.context("the label store did not build the query")?;
-            self.segments
-                .insert(asked.first, Arc::new(seg_of(&a.trajectory)));
-            self.segments
-                .insert(asked.second, Arc::new(seg_of(&b.trajectory)));
+            let ids = [asked.first, asked.second].into_iter().chain(asked.more);
+            for (id, side) in ids.zip(set) {
+                self.segments.insert(id, Arc::new(seg_of(&side.trajectory)));
+            }
             self.in_flight.insert(
                 asked.query,
                 InFlight {
                     query: q.clone(),
                     sent: Instant::now(),
-                    keys: [a.trajectory.key, b.trajectory.key],
+                    keys: set.iter().map(|s| s.trajectory.key).collect(),
                     asked: (env_steps, Instant::now()),
                 },
             );
@@ -191,31 +229,20 @@ impl Feedback {
                         });
                     }
                     let bounds = |s: &Shown| (s.id, (s.start as usize, s.len as usize));
-                    let (first, second) = match &open {
-                        Some(f) => (bounds(&f.query.first), bounds(&f.query.second)),
+                    let attempts = match &open {
+                        Some(f) => f.query.attempts().map(bounds).collect(),
                         None => {
                             // NOTE: a late answer to an expired query: its ids are in D.
-                            let row = self
-                                .store
+                            self.store
                                 .labels_since(0)?
                                 .into_iter()
                                 .find(|r| r.query == a.query)
-                                .context("a stored answer is not in D")?;
-                            (
-                                (row.first, row.first_segment),
-                                (row.second, row.second_segment),
-                            )
+                                .context("a stored answer is not in D")?
+                                .attempts()
                         }
                     };
-                    let (first, second) = (
-                        self.labelled_side(first.0, first.1)?,
-                        self.labelled_side(second.0, second.1)?,
-                    );
-                    self.data.push(Labelled {
-                        first,
-                        second,
-                        target: target(a.preference),
-                    });
+                    let labels = self.labelled(&attempts, a.preference, &a.ranks)?;
+                    self.data.extend(labels);
                 }
             }
             Stored::Repeated => {
@@ -228,6 +255,16 @@ impl Feedback {
                     query = a.query,
                     teacher = %a.teacher_id,
                     "dropped an answer to a query this run never asked"
+                );
+                return Ok(Answered::Dropped);
+            }
+            Stored::Misfit => {
+                self.counters.unknown_answers += 1;
+                tracing::warn!(
+                    query = a.query,
+                    teacher = %a.teacher_id,
+                    places = ?a.ranks,
+                    "dropped an answer that does not fit its query (a pair's answer to a ranking, or places for another number of attempts)"
                 );
                 return Ok(Answered::Dropped);
             }

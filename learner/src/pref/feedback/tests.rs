@@ -419,3 +419,63 @@ const GOLDEN_STARTS: [(u64, u32, u64, u32); 4] = [
     (3, 108, 1, 58),
     (16, 30, 13, 42),
 ];
+
+#[test]
+fn rankings_of_a_known_order_are_asked_stored_as_all_their_pairs_and_learnt() {
+    let cfg = PrefConfig {
+        unsup_steps: 0,
+        queries_per_session: 12,
+        feedback_interval: 100,
+        query_attempts: 4,
+        query_recent: 0,
+        max_feedback: 12,
+        ..PrefConfig::plain()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("labels.sqlite");
+    let mut f = Feedback::new(&cfg, "run", 2, 1, 0, &path).unwrap();
+    for seq in 0..40 {
+        f.observe(&msg(seq));
+    }
+    let done = f.start(0, true).unwrap().unwrap();
+    let asked = f.finish(done, 0).unwrap().0;
+    assert_eq!(asked.len(), 12);
+    // The teacher's order: the larger observation is better (msg's obs are its seq).
+    let value = |s: &pbrl_common::wire::Shown| s.id;
+    let mut seqs = Vec::new();
+    for q in &asked {
+        assert_eq!(q.len(), 4, "a ranking of four");
+        let obs: Vec<f32> = q
+            .attempts()
+            .map(|s| f.segment(value(s)).unwrap().obs[0])
+            .collect();
+        seqs.extend(obs.iter().copied());
+        let places: Vec<u8> = obs
+            .iter()
+            .map(|o| obs.iter().filter(|x| *x > o).count() as u8)
+            .collect();
+        let a = Answer::ranked(q.id, places, "oracle", "o-0", 1);
+        assert!(matches!(f.answer(&a).unwrap(), Answered::Ack(_)));
+    }
+    assert_eq!(
+        f.data.len(),
+        12 * 6,
+        "each ranking of four is six pairs of D"
+    );
+    assert_eq!(f.counts().unwrap().answered, 12, "and one answer each");
+    let done = f.start(0, true).unwrap().unwrap();
+    assert!(matches!(done, JobDone::Trained { .. }));
+    f.finish(done, 0).unwrap();
+    assert!(
+        f.counters.accuracy >= 0.95,
+        "accuracy {}",
+        f.counters.accuracy
+    );
+    // D read back from the store after a restart is the same 72 pairs.
+    let mut g = Feedback::new(&cfg, "run", 2, 1, 0, &path).unwrap();
+    g.reload().unwrap();
+    assert_eq!(g.data.len(), 72);
+    let targets = |d: &[Labelled]| d.iter().map(|l| l.target).collect::<Vec<_>>();
+    assert_eq!(targets(&g.data), targets(&f.data));
+    assert!(seqs.iter().any(|&s| s != seqs[0]));
+}

@@ -67,7 +67,7 @@ mod tests;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use pbrl_common::wire::{Answer, Preference};
+use pbrl_common::wire::{self, Answer, Preference};
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 
 pub use schema::SCHEMA;
@@ -157,11 +157,13 @@ impl StoredTrajectory<'_> {
 }
 
 /// The store's ids of a query and its two trajectories.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Asked {
     pub query: u64,
     pub first: u64,
     pub second: u64,
+    /// A ranking's attempts after the first two.
+    pub more: Vec<u64>,
 }
 
 /// What storing an answer did. Each outcome means the answer may be acknowledged: it is
@@ -177,6 +179,9 @@ pub enum Stored {
     /// The query had expired (the learner gave up waiting); the answer is stored all the
     /// same, since it is a person's judgement. It was not among the queries in flight.
     Late,
+    /// The answer does not fit the query (places for a pair, a pair's answer to a ranking,
+    /// or places for another number of attempts): not stored, and not acknowledged.
+    Misfit,
 }
 
 /// The queries by state.
@@ -228,9 +233,25 @@ pub struct LabelRow {
     /// the queries of an older store).
     pub first_segment: (usize, usize),
     pub second_segment: (usize, usize),
-    /// First, Second or Equal (never Skip).
+    /// First, Second or Equal (never Skip): for a ranking, the order of its first two.
     pub preference: Preference,
     pub answered_at_ms: u64,
+    /// A ranking's attempts after the first two: trajectory ids and segments.
+    pub more: Vec<(u64, (usize, usize))>,
+    /// A ranking's places, one per attempt (empty: a pair, which `preference` says).
+    pub ranks: Vec<u8>,
+}
+
+impl LabelRow {
+    /// Every attempt compared: trajectory id and segment, in the query's order.
+    pub fn attempts(&self) -> Vec<(u64, (usize, usize))> {
+        let mut v = vec![
+            (self.first, self.first_segment),
+            (self.second, self.second_segment),
+        ];
+        v.extend(self.more.iter().copied());
+        v
+    }
 }
 
 /// The steps of one stored trajectory.
@@ -372,10 +393,8 @@ impl LabelStore {
             .with_context(|| format!("starting a transaction on {}", self.path.display()))
     }
 
-    /// Record a query before it is sent, in one transaction: both trajectories (stored once
-    /// per actor, incarnation and seq), then the query. `message(query, first, second)`
-    /// builds the encoded query from the new ids; it is kept until the query is answered
-    /// or expires, so that it can be asked again after a restart.
+    /// Record a pair's query before it is sent ([`LabelStore::ask_attempts`] of two):
+    /// `message(query, first, second)` builds the encoded query from the new ids.
     #[allow(clippy::too_many_arguments)]
     pub fn ask(
         &mut self,
@@ -387,18 +406,54 @@ impl LabelStore {
         second: &StoredTrajectory<'_>,
         message: impl FnOnce(u64, u64, u64) -> Vec<u8>,
     ) -> Result<Asked> {
-        first.check("first")?;
-        second.check("second")?;
-        if (first.actor, first.incarnation, first.seq)
-            == (second.actor, second.incarnation, second.seq)
-        {
-            bail!("a query compares trajectory {} with itself", first.key());
+        self.ask_attempts(
+            session,
+            sampler,
+            env_steps,
+            asked_at_ms,
+            &[first, second],
+            |query, ids| message(query, ids[0], ids[1]),
+        )
+    }
+
+    /// Record a query of two to four attempts before it is sent, in one transaction: every
+    /// trajectory (stored once per actor, incarnation and seq), then the query (the
+    /// attempts after the first two in `query_attempts`). `message(query, ids)` builds the
+    /// encoded query from the new ids; it is kept until the query is answered or expires,
+    /// so that it can be asked again after a restart.
+    pub fn ask_attempts(
+        &mut self,
+        session: u64,
+        sampler: &str,
+        env_steps: u64,
+        asked_at_ms: u64,
+        attempts: &[&StoredTrajectory<'_>],
+        message: impl FnOnce(u64, &[u64]) -> Vec<u8>,
+    ) -> Result<Asked> {
+        if !(2..=wire::MAX_ATTEMPTS).contains(&attempts.len()) {
+            bail!("a query shows 2 to 4 attempts, not {}", attempts.len());
+        }
+        const NAMES: [&str; 4] = ["first", "second", "third", "fourth"];
+        for (t, name) in attempts.iter().zip(NAMES) {
+            t.check(name)?;
+        }
+        for (k, a) in attempts.iter().enumerate() {
+            if attempts[..k]
+                .iter()
+                .any(|b| (a.actor, a.incarnation, a.seq) == (b.actor, b.incarnation, b.seq))
+            {
+                bail!("a query compares trajectory {} with itself", a.key());
+            }
         }
         let path = self.path.clone();
         let tx = self.write()?;
         let context = || format!("storing a query of session {session} in {}", path.display());
-        let first_id = put_trajectory(&tx, first).with_context(context)?;
-        let second_id = put_trajectory(&tx, second).with_context(context)?;
+        let ids = attempts
+            .iter()
+            .map(|t| put_trajectory(&tx, t))
+            .collect::<Result<Vec<u64>>>()
+            .with_context(context)?;
+        let (first, second) = (attempts[0], attempts[1]);
         // NOTE: the message needs the query's id, which the insert draws: the row holds an
         // empty message until the update below, in the same transaction.
         tx.execute(
@@ -409,8 +464,8 @@ impl LabelStore {
                 int(session),
                 sampler,
                 int(env_steps),
-                int(first_id),
-                int(second_id),
+                int(ids[0]),
+                int(ids[1]),
                 int(asked_at_ms),
                 first.segment.0 as i64,
                 first.segment.1 as i64,
@@ -420,7 +475,21 @@ impl LabelStore {
         )
         .with_context(context)?;
         let query = uint(tx.last_insert_rowid());
-        let bytes = message(query, first_id, second_id);
+        for (k, (t, id)) in attempts.iter().zip(&ids).enumerate().skip(2) {
+            tx.execute(
+                "INSERT INTO query_attempts (query, k, trajectory, start, len)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![
+                    int(query),
+                    k as i64,
+                    int(*id),
+                    t.segment.0 as i64,
+                    t.segment.1 as i64
+                ],
+            )
+            .with_context(context)?;
+        }
+        let bytes = message(query, &ids);
         tx.execute(
             "UPDATE queries SET message = ?1 WHERE id = ?2",
             params![bytes, int(query)],
@@ -430,8 +499,9 @@ impl LabelStore {
             .with_context(|| format!("committing query {query} to {}", path.display()))?;
         Ok(Asked {
             query,
-            first: first_id,
-            second: second_id,
+            first: ids[0],
+            second: ids[1],
+            more: ids[2..].to_vec(),
         })
     }
 
@@ -456,11 +526,34 @@ impl LabelStore {
             Some(Some("expired")) => Stored::Late,
             Some(Some(_)) => return Ok(Stored::Repeated),
         };
+        let more: i64 = tx
+            .query_row(
+                "SELECT count(*) FROM query_attempts WHERE query = ?1",
+                [int(query)],
+                |r| r.get(0),
+            )
+            .with_context(context)?;
+        let attempts = 2 + more as usize;
+        let fits = match a.ranks.len() {
+            0 => attempts == 2 || a.preference == Preference::Skip,
+            n => n == attempts && attempts > 2,
+        };
+        if !fits {
+            return Ok(Stored::Misfit);
+        }
+        let ranks = (!a.ranks.is_empty()).then(|| {
+            a.ranks
+                .iter()
+                .map(|r| r.to_string())
+                .collect::<Vec<_>>()
+                .join(",")
+        });
         tx.execute(
             "UPDATE queries SET answer = ?1, teacher = ?2, teacher_id = ?3, took_ms = ?4,
                  answered_at_ms = ?5, message = NULL,
                  answer_no = (SELECT coalesce(max(answer_no), 0) + 1 FROM queries),
-                 labeller = ?7, replays_first = ?8, replays_second = ?9, shadow = ?10
+                 labeller = ?7, replays_first = ?8, replays_second = ?9, shadow = ?10,
+                 ranks = ?11
              WHERE id = ?6",
             params![
                 a.preference.name(),
@@ -473,6 +566,7 @@ impl LabelStore {
                 (!a.labeller.is_empty()).then_some(a.replays[0]),
                 (!a.labeller.is_empty()).then_some(a.replays[1]),
                 a.shadow.map(|p| p.name()),
+                ranks,
             ],
         )
         .with_context(context)?;

@@ -122,7 +122,7 @@ impl LabelStore {
                 "SELECT q.answer_no, q.id, q.session, q.first, q.second, q.answer,
                         q.answered_at_ms,
                         coalesce(q.first_start, 0), coalesce(q.first_len, a.steps),
-                        coalesce(q.second_start, 0), coalesce(q.second_len, b.steps)
+                        coalesce(q.second_start, 0), coalesce(q.second_len, b.steps), q.ranks
                  FROM queries q
                  JOIN trajectories a ON a.id = q.first
                  JOIN trajectories b ON b.id = q.second
@@ -146,6 +146,7 @@ impl LabelStore {
                         r.get::<_, i64>(9)?,
                         r.get::<_, i64>(10)?,
                     ],
+                    r.get::<_, Option<String>>(11)?,
                 ))
             })
             .with_context(context)?
@@ -153,7 +154,17 @@ impl LabelStore {
             .with_context(context)?;
         rows.into_iter()
             .map(
-                |(answer_no, query, session, first, second, answer, answered_at_ms, bounds)| {
+                |(
+                    answer_no,
+                    query,
+                    session,
+                    first,
+                    second,
+                    answer,
+                    answered_at_ms,
+                    bounds,
+                    ranks,
+                )| {
                     let preference = Preference::parse(&answer).with_context(|| {
                         format!(
                             "query {query} in {} has answer {answer:?}",
@@ -161,7 +172,13 @@ impl LabelStore {
                         )
                     })?;
                     let [a0, a1, b0, b1] = bounds.map(|x| x.max(0) as usize);
+                    let (more, ranks) = match ranks {
+                        Some(r) => (self.more_attempts(query)?, self.places(query, &r)?),
+                        None => (Vec::new(), Vec::new()),
+                    };
                     Ok(LabelRow {
+                        more,
+                        ranks,
                         answer_no,
                         query,
                         session,
@@ -175,6 +192,49 @@ impl LabelStore {
                 },
             )
             .collect()
+    }
+
+    /// A ranking's attempts after the first two: trajectory ids and segments, in order.
+    fn more_attempts(&self, query: u64) -> Result<Vec<(u64, (usize, usize))>> {
+        let context = || {
+            format!(
+                "reading the attempts of query {query} from {}",
+                self.path.display()
+            )
+        };
+        let mut stmt = self
+            .conn
+            .prepare_cached(
+                "SELECT trajectory, start, len FROM query_attempts WHERE query = ?1 ORDER BY k",
+            )
+            .with_context(context)?;
+        let rows = stmt
+            .query_map([int(query)], |r| {
+                Ok((
+                    uint(r.get(0)?),
+                    (
+                        r.get::<_, i64>(1)?.max(0) as usize,
+                        r.get::<_, i64>(2)?.max(0) as usize,
+                    ),
+                ))
+            })
+            .with_context(context)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .with_context(context)?;
+        Ok(rows)
+    }
+
+    /// A ranking's places as the store writes them ("1,0,1,2").
+    fn places(&self, query: u64, text: &str) -> Result<Vec<u8>> {
+        text.split(',')
+            .map(|p| p.trim().parse::<u8>())
+            .collect::<Result<Vec<u8>, _>>()
+            .with_context(|| {
+                format!(
+                    "query {query} in {} has places {text:?}",
+                    self.path.display()
+                )
+            })
     }
 
     /// The steps of trajectory `trajectory` (an id from [`Asked`] or [`LabelRow`]).

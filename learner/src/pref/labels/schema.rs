@@ -1,4 +1,4 @@
-//! The label store's layout (schema 5) and its migrations from older stores.
+//! The label store's layout (schema 6) and its migrations from older stores.
 
 use anyhow::{bail, Context, Result};
 use rusqlite::{params, OptionalExtension};
@@ -6,7 +6,7 @@ use rusqlite::{params, OptionalExtension};
 use super::LabelStore;
 
 /// The layout this build writes and reads (`meta.schema`).
-pub const SCHEMA: u32 = 5;
+pub const SCHEMA: u32 = 6;
 
 const CREATE: &str = "
 CREATE TABLE meta (
@@ -53,6 +53,7 @@ CREATE TABLE queries (
     replays_first INTEGER,
     replays_second INTEGER,
     shadow TEXT,
+    ranks TEXT,
     CHECK ((answer IS NULL) = (message IS NOT NULL))
 );
 CREATE INDEX queries_open ON queries (id) WHERE answer IS NULL;
@@ -94,6 +95,26 @@ ALTER TABLE queries ADD COLUMN withdrawn_at_steps INTEGER;
 UPDATE meta SET value = '5' WHERE key = 'schema';
 ";
 
+/// What schema 6 added to schema 5: a ranking's attempts after the first two, and its
+/// places (NULL for every query of an older build: pairs).
+const MIGRATE_5_TO_6: &str = "
+ALTER TABLE queries ADD COLUMN ranks TEXT;
+DROP VIEW IF EXISTS labels;
+UPDATE meta SET value = '6' WHERE key = 'schema';
+";
+
+/// A ranking's attempts after the first two (attempt `k`, 2 or 3, of query `query`).
+const ATTEMPTS: &str = "
+CREATE TABLE query_attempts (
+    query INTEGER NOT NULL REFERENCES queries (id),
+    k INTEGER NOT NULL CHECK (k >= 2),
+    trajectory INTEGER NOT NULL REFERENCES trajectories (id),
+    start INTEGER NOT NULL,
+    len INTEGER NOT NULL CHECK (len > 0),
+    PRIMARY KEY (query, k)
+);
+";
+
 const REPEATS: &str = "
 CREATE TABLE repeats (
     query INTEGER NOT NULL REFERENCES queries (id),
@@ -121,7 +142,7 @@ SELECT q.id AS query, q.session, q.sampler, q.env_steps, q.answer, q.teacher, q.
        q.second, b.policy_version AS second_policy_version, b.seed AS second_seed,
        b.steps AS second_steps,
        coalesce(q.second_start, 0) AS second_start,
-       coalesce(q.second_len, b.steps) AS second_len
+       coalesce(q.second_len, b.steps) AS second_len, q.ranks
 FROM queries q
 JOIN trajectories a ON a.id = q.first
 JOIN trajectories b ON b.id = q.second
@@ -143,7 +164,7 @@ impl LabelStore {
             })
             .with_context(|| format!("listing the tables of {}", path.display()))?;
         if tables.is_empty() {
-            tx.execute_batch(&format!("{CREATE}{REPEATS}{VIEW}"))
+            tx.execute_batch(&format!("{CREATE}{ATTEMPTS}{REPEATS}{VIEW}"))
                 .with_context(|| {
                     format!("creating the tables of label store {}", path.display())
                 })?;
@@ -178,7 +199,8 @@ impl LabelStore {
         if schema == "2" {
             // NOTE: the queries of an older build compared whole trajectories: their
             // segments stay NULL and read as the whole trajectory.
-            tx.execute_batch(&format!("{MIGRATE_2_TO_3}{VIEW}"))
+            // NOTE: the view is made again at the last step, with every column.
+            tx.execute_batch(MIGRATE_2_TO_3)
                 .with_context(|| format!("upgrading label store {} to schema 3", path.display()))?;
             schema = "3".into();
         }
@@ -192,6 +214,12 @@ impl LabelStore {
             // NOTE: an older build withdrew no query: NULL throughout.
             tx.execute_batch(MIGRATE_4_TO_5)
                 .with_context(|| format!("upgrading label store {} to schema 5", path.display()))?;
+            schema = "5".into();
+        }
+        if schema == "5" {
+            // NOTE: an older build asked pairs only: no attempts beyond two, no places.
+            tx.execute_batch(&format!("{MIGRATE_5_TO_6}{ATTEMPTS}{VIEW}"))
+                .with_context(|| format!("upgrading label store {} to schema 6", path.display()))?;
             schema = SCHEMA.to_string();
         }
         if schema != SCHEMA.to_string() {

@@ -128,6 +128,8 @@ fn a_label_round_trips_through_the_file() {
             second_segment: (0, b.actions.len() / ACT_DIM),
             preference: Preference::Second,
             answered_at_ms: 2_000 + q1.query,
+            more: Vec::new(),
+            ranks: Vec::new(),
         }]
     );
     assert!(store.labels_since(1).unwrap().is_empty());
@@ -269,6 +271,7 @@ fn a_schema_1_store_is_upgraded_in_place_and_keeps_its_labels() {
          ALTER TABLE queries DROP COLUMN second_len;
          ALTER TABLE trajectories DROP COLUMN features;
          ALTER TABLE queries DROP COLUMN withdrawn_at_steps;
+         DROP TABLE query_attempts; ALTER TABLE queries DROP COLUMN ranks;
          CREATE VIEW labels AS SELECT id AS query FROM queries;
          UPDATE meta SET value = '1' WHERE key = 'schema';",
     )
@@ -312,6 +315,7 @@ fn a_schema_2_store_reads_its_queries_as_whole_trajectories_and_stores_segments(
          ALTER TABLE queries DROP COLUMN second_len;
          ALTER TABLE trajectories DROP COLUMN features;
          ALTER TABLE queries DROP COLUMN withdrawn_at_steps;
+         DROP TABLE query_attempts; ALTER TABLE queries DROP COLUMN ranks;
          CREATE VIEW labels AS SELECT id AS query FROM queries;
          UPDATE meta SET value = '2' WHERE key = 'schema';",
     )
@@ -389,7 +393,7 @@ fn open_queries_keep_their_message_until_answered_or_expired() {
     let open = store.open_queries().unwrap();
     assert_eq!(
         open,
-        [q1, q2, q3]
+        [&q1, &q2, &q3]
             .map(|q| (q.query, 1_000, message(q.query, q.first, q.second)))
             .to_vec()
     );
@@ -527,4 +531,57 @@ fn a_committed_answer_survives_a_crash() {
     );
     // (Open until here, so that nothing closed it cleanly before the copy.)
     drop(store);
+}
+
+#[test]
+fn a_ranking_is_one_answer_with_every_attempt_and_a_misfit_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("labels.sqlite");
+    let mut store = LabelStore::open(&path, "run").unwrap();
+    let ts: Vec<Traj> = (0..4).map(|k| traj(1, k, 4 + k as usize)).collect();
+    let mut sides: Vec<StoredTrajectory<'_>> = ts.iter().map(stored).collect();
+    sides[3].segment = (1, 2);
+    let refs: Vec<&StoredTrajectory<'_>> = sides.iter().collect();
+    let asked = store
+        .ask_attempts(3, "disagreement", 7_000, 2_000, &refs, |q, ids| {
+            format!("query {q} of {ids:?}").into_bytes()
+        })
+        .unwrap();
+    assert_eq!(asked.more.len(), 2);
+    // A pair's answer to a ranking, and places for three of four attempts, do not fit.
+    let pair = Answer::scripted(asked.query, Preference::First, "oracle", "o-0", 1);
+    assert_eq!(store.answer(&pair, 10).unwrap(), Stored::Misfit);
+    let three = Answer::ranked(asked.query, vec![0, 1, 2], "oracle", "o-0", 1);
+    assert_eq!(store.answer(&three, 10).unwrap(), Stored::Misfit);
+    assert_eq!(store.counts().unwrap().open, 1, "still open");
+    let ranked = Answer::ranked(asked.query, vec![2, 0, 2, 1], "oracle", "o-0", 1);
+    assert_eq!(store.answer(&ranked, 11).unwrap(), Stored::New);
+    assert_eq!(store.answer(&ranked, 12).unwrap(), Stored::Repeated);
+    let counts = store.counts().unwrap();
+    assert_eq!((counts.asked, counts.answered, counts.open), (1, 1, 0));
+    // Read back after a reopen: one label, every attempt with its segment, the places.
+    drop(store);
+    let store = LabelStore::open(&path, "run").unwrap();
+    let rows = store.labels_since(0).unwrap();
+    assert_eq!(rows.len(), 1);
+    let r = &rows[0];
+    assert_eq!(r.ranks, [2, 0, 2, 1]);
+    assert_eq!(r.preference, Preference::Second);
+    let ids = [asked.first, asked.second, asked.more[0], asked.more[1]];
+    let segs = [(0, 4), (0, 5), (0, 6), (1, 2)];
+    assert_eq!(r.attempts(), ids.into_iter().zip(segs).collect::<Vec<_>>());
+    for (id, t) in ids.iter().zip(&ts) {
+        assert_eq!(store.steps(*id).unwrap().actions, t.actions);
+    }
+    // A pair's row has no places and two attempts.
+    let mut store = store;
+    let q = ask(&mut store, &ts[0], &ts[1]);
+    store
+        .answer(
+            &Answer::scripted(q.query, Preference::Equal, "oracle", "o-0", 1),
+            20,
+        )
+        .unwrap();
+    let rows = store.labels_since(r.answer_no).unwrap();
+    assert_eq!((rows[0].ranks.len(), rows[0].attempts().len()), (0, 2));
 }
