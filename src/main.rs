@@ -6,6 +6,7 @@ mod exp;
 mod export;
 mod people;
 mod plot;
+mod prior;
 mod train;
 mod watch;
 
@@ -60,6 +61,9 @@ enum Command {
     /// config per person of the population (`docs/people.md`).
     #[command(subcommand)]
     People(people::PeopleCommand),
+    /// A reward prior from other people's answers, for `pbrl train --prior FILE`: `pbrl
+    /// prior RUN... --out FILE` (never from a held-out person's run).
+    Prior(prior::PriorArgs),
     /// Benchmarks: `pbrl bench learner`.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -249,6 +253,7 @@ fn main() -> Result<()> {
         Command::Watch(a) => return watch::watch(a),
         Command::Export(a) => return export::export(a),
         Command::People(c) => return people::run(c),
+        Command::Prior(a) => return prior::run(a),
         Command::Exp(exp::ExpCommand::Run(a)) => return exp::run(a),
         Command::Exp(exp::ExpCommand::Plot(a)) => return plot::plot(a),
         _ => {}
@@ -271,7 +276,8 @@ fn main() -> Result<()> {
             | Command::Eval(_)
             | Command::Watch(_)
             | Command::Export(_)
-            | Command::People(_) => {
+            | Command::People(_)
+            | Command::Prior(_) => {
                 unreachable!("handled above")
             }
         }

@@ -61,6 +61,12 @@ pub struct PrefConfig {
     /// How queries are chosen among the candidates (the first session is always uniform).
     #[arg(long, value_enum, default_value = "disagreement")]
     pub sampler: Sampler,
+    /// Start the reward ensemble from a prior learnt from other people's answers (a file
+    /// of `pbrl prior`): its weights and normaliser; this person's answers adapt it, and it
+    /// is the reward from the end of the pretraining on.
+    #[arg(long)]
+    #[serde(default)]
+    pub prior: Option<std::path::PathBuf>,
     /// Attempts each query shows: 2 asks which of two was better (B-Pref's pairs); 3 or 4
     /// ask the teacher to rank them, ties allowed, as one answer (learnt from as all its
     /// pairs). A ranking counts once against the budget.

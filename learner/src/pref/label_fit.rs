@@ -16,7 +16,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::pref::feedback::target;
+use crate::pref::feedback::labelled;
 use crate::pref::labels::LabelStore;
 use crate::pref::reward_model::{task_reward, Labelled, RewardModel, RewardModelConfig, Segment};
 
@@ -69,13 +69,12 @@ pub fn read_labels(path: &Path) -> Result<StoredLabels> {
                 t.steps,
             )))
         };
-        let first = side(row.first, row.first_segment)?;
-        let second = side(row.second, row.second_segment)?;
-        data.push(Labelled {
-            first,
-            second,
-            target: target(row.preference),
-        });
+        let sides = row
+            .attempts()
+            .into_iter()
+            .map(|(id, seg)| side(id, seg))
+            .collect::<Result<Vec<_>>>()?;
+        data.extend(labelled(&sides, row.preference, &row.ranks));
     }
     Ok(StoredLabels {
         data,

@@ -9,6 +9,7 @@ pub mod feedback;
 pub mod label_fit;
 pub mod label_stats;
 pub mod labels;
+pub mod prior;
 pub mod query;
 pub mod reward;
 pub mod reward_model;

@@ -95,8 +95,9 @@ impl Feedback {
         };
         let k = quota.min(self.room()) as usize;
         // NOTE: the first session is uniform: an untrained ensemble's disagreement
-        // means nothing.
-        let sampler = if session == 1 || !self.model.trained() {
+        // means nothing (a prior's does).
+        let first = session == 1 && self.cfg.prior.is_none();
+        let sampler = if first || !self.model.trained() {
             Sampler::Uniform
         } else {
             self.cfg.sampler

@@ -38,7 +38,7 @@ use crate::pref::query::{AnnotationBuffer, Candidate, Sampler};
 use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment, TrainStats};
 use crate::state::RngState;
 pub use choose::Side;
-pub(crate) use open::target;
+pub(crate) use open::labelled;
 pub use open::Outgoing;
 use open::{AskedAt, InFlight};
 
@@ -161,7 +161,17 @@ impl Feedback {
         let store = LabelStore::open(labels, run)?;
         let mut model_cfg = cfg.model.clone();
         model_cfg.seed = seed;
-        let model = RewardModel::new(model_cfg, obs_dim, act_dim)?;
+        let mut model = RewardModel::new(model_cfg, obs_dim, act_dim)?;
+        if let Some(path) = &cfg.prior {
+            let prior = crate::pref::prior::load(path)?;
+            model.start_from(&prior, path)?;
+            tracing::info!(
+                prior = %path.display(),
+                people = prior.meta.people.len(),
+                labels = prior.meta.labels,
+                "the reward ensemble starts from a prior"
+            );
+        }
         let mut f = Self {
             cfg: cfg.clone(),
             run: run.into(),
@@ -249,9 +259,11 @@ impl Feedback {
         self.labellers = n;
     }
 
-    /// The newest trained ensemble, if any.
+    /// The reward ensemble, once it is the reward: trained on answers, or a prior from the
+    /// first session on (before it, the pretraining's bonus is).
     pub fn model(&self) -> Option<Arc<RewardModel>> {
-        self.model.trained().then(|| self.model.clone())
+        let installed = self.counters.trainings > 0 || self.counters.sessions > 0;
+        (self.model.trained() && installed).then(|| self.model.clone())
     }
 
     /// The budget is spent: the ensemble is frozen. (Asked queries never leave the store,
@@ -361,6 +373,9 @@ impl Feedback {
                     0
                 };
                 self.top_up_stuck_at = None;
+                // NOTE: a prior is the reward from the first session on, before any answer.
+                let prior = (self.cfg.prior.is_some() && self.counters.trainings == 0)
+                    .then(|| self.model.clone());
                 // NOTE: a session that waited for a training comes late; the next one is
                 // an interval after it, not at once.
                 while self.counters.next_session_at <= env_steps.max(now) {
@@ -374,7 +389,7 @@ impl Feedback {
                     sampler = ?sampler,
                     "feedback session: queries asked"
                 );
-                Ok((queries, None))
+                Ok((queries, prior))
             }
             JobDone::Trained {
                 model,
@@ -435,6 +450,9 @@ impl Feedback {
         self.buffer = s.buffer.clone();
         let mut model = self.model.snapshot()?;
         model.restore(&s.model)?;
+        if self.cfg.prior.is_some() {
+            model.keep_restored_normaliser();
+        }
         self.model = Arc::new(model);
         self.catch_up()?;
         self.reload()

@@ -98,24 +98,7 @@ impl Feedback {
             .iter()
             .map(|&(id, seg)| self.labelled_side(id, seg))
             .collect::<Result<Vec<_>>>()?;
-        if ranks.is_empty() {
-            return Ok(vec![Labelled {
-                first: sides[0].clone(),
-                second: sides[1].clone(),
-                target: target(preference),
-            }]);
-        }
-        let mut out = Vec::with_capacity(sides.len() * (sides.len() - 1) / 2);
-        for i in 0..sides.len() {
-            for j in i + 1..sides.len() {
-                out.push(Labelled {
-                    first: sides[i].clone(),
-                    second: sides[j].clone(),
-                    target: target(Preference::of_places(ranks[i], ranks[j])),
-                });
-            }
-        }
-        Ok(out)
+        Ok(labelled(&sides, preference, ranks))
     }
 
     /// Record the chosen pairs (or sets to rank) in the label store (each query committed
@@ -335,6 +318,33 @@ impl Feedback {
 }
 
 /// The soft target of a preference: P[second preferred].
+/// The labels of D one answer gives over its attempts' segments `sides`: a pair's one
+/// (`preference`), or every pair of a ranking's attempts with the target their places give.
+pub(crate) fn labelled(
+    sides: &[Arc<Segment>],
+    preference: Preference,
+    ranks: &[u8],
+) -> Vec<Labelled> {
+    if ranks.is_empty() {
+        return vec![Labelled {
+            first: sides[0].clone(),
+            second: sides[1].clone(),
+            target: target(preference),
+        }];
+    }
+    let mut out = Vec::with_capacity(sides.len() * (sides.len() - 1) / 2);
+    for i in 0..sides.len() {
+        for j in i + 1..sides.len() {
+            out.push(Labelled {
+                first: sides[i].clone(),
+                second: sides[j].clone(),
+                target: target(Preference::of_places(ranks[i], ranks[j])),
+            });
+        }
+    }
+    out
+}
+
 pub(crate) fn target(p: Preference) -> f32 {
     match p {
         Preference::First => 0.0,

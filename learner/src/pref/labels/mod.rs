@@ -278,6 +278,9 @@ pub struct LabelStore {
     /// The queries table has its withdrawn_at_steps column (false only for a store of
     /// schema 3 or 4 opened read-only).
     withdrawals: bool,
+    /// The queries table has its ranks column and the rankings' attempts their table
+    /// (false only for a store of schema 3 to 5 opened read-only: pairs only).
+    rankings: bool,
 }
 
 // NOTE: SQLite's integers are i64; u64 values are stored by their bits and read back the
@@ -316,6 +319,7 @@ impl LabelStore {
             path: path.to_path_buf(),
             features: true,
             withdrawals: true,
+            rankings: true,
         };
         store
             .configure()
@@ -337,8 +341,8 @@ impl LabelStore {
 
     /// Open the label store at `path` to read it only (safe while its run goes): no
     /// upgrade, nothing written; a file that is not a label store of this schema (or of
-    /// schema 4, read as having withdrawn nothing, or 3, also as keeping no features) is
-    /// refused.
+    /// schema 5, read as pairs only; 4, also as having withdrawn nothing; or 3, also as
+    /// keeping no features) is refused.
     pub fn open_read_only(path: &Path) -> Result<Self> {
         let conn = Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
             .with_context(|| format!("opening label store {}", path.display()))?;
@@ -362,6 +366,7 @@ impl LabelStore {
             path: path.to_path_buf(),
             features: version >= 4,
             withdrawals: version >= 5,
+            rankings: version >= 6,
         })
     }
 

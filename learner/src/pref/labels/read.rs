@@ -116,19 +116,21 @@ impl LabelStore {
                 self.path.display()
             )
         };
+        // NOTE: a store of an older build opened read-only has no places: pairs only.
+        let ranks = if self.rankings { "q.ranks" } else { "NULL" };
         let mut stmt = self
             .conn
-            .prepare(
+            .prepare(&format!(
                 "SELECT q.answer_no, q.id, q.session, q.first, q.second, q.answer,
                         q.answered_at_ms,
                         coalesce(q.first_start, 0), coalesce(q.first_len, a.steps),
-                        coalesce(q.second_start, 0), coalesce(q.second_len, b.steps), q.ranks
+                        coalesce(q.second_start, 0), coalesce(q.second_len, b.steps), {ranks}
                  FROM queries q
                  JOIN trajectories a ON a.id = q.first
                  JOIN trajectories b ON b.id = q.second
                  WHERE q.answer IN ('first', 'second', 'equal') AND q.answer_no > ?1
-                 ORDER BY q.answer_no",
-            )
+                 ORDER BY q.answer_no"
+            ))
             .with_context(context)?;
         let rows = stmt
             .query_map([int(after_answer)], |r| {

@@ -369,6 +369,8 @@ pub struct RewardModel {
     norm: ObsNorm,
     rng: ChaCha8Rng,
     trained: bool,
+    /// The normaliser came with a prior and is kept: not refitted to D at each training.
+    keep_norm: bool,
 }
 
 impl RewardModel {
@@ -419,6 +421,7 @@ impl RewardModel {
             norm: ObsNorm::identity(obs_dim),
             rng,
             trained: false,
+            keep_norm: false,
         })
     }
 
@@ -439,9 +442,40 @@ impl RewardModel {
         self.feat_dim
     }
 
-    /// False until the first [`RewardModel::train`] on a non-empty D.
+    /// False until the first [`RewardModel::train`] on a non-empty D (or a prior).
     pub fn trained(&self) -> bool {
         self.trained
+    }
+
+    /// The observation normaliser: mean and standard deviation per dimension.
+    pub fn normaliser(&self) -> (Vec<f32>, Vec<f32>) {
+        (self.norm.mean.clone(), self.norm.std.clone())
+    }
+
+    /// Normalise observations with `mean` and `std` from now on, never refitted (a prior's:
+    /// the weights learnt with it read observations so scaled). The model counts as
+    /// trained.
+    pub fn keep_normaliser(&mut self, mean: Vec<f32>, std: Vec<f32>) -> Result<()> {
+        if mean.len() != self.obs_dim || std.len() != self.obs_dim {
+            candle_core::bail!(
+                "a normaliser of {} / {} dimensions for a model of {}",
+                mean.len(),
+                std.len(),
+                self.obs_dim
+            );
+        }
+        if std.iter().chain(&mean).any(|x| !x.is_finite()) || std.iter().any(|s| *s <= 0.0) {
+            candle_core::bail!("a normaliser needs finite means and positive deviations");
+        }
+        self.norm = ObsNorm { mean, std };
+        self.keep_norm = true;
+        self.trained = true;
+        Ok(())
+    }
+
+    /// Keep the normaliser restored from a checkpoint (a run started from a prior).
+    pub fn keep_restored_normaliser(&mut self) {
+        self.keep_norm = true;
     }
 
     /// The members' networks by name, `reward_0`, `reward_1`, ... (for checkpoints).
@@ -519,6 +553,7 @@ impl RewardModel {
             norm: self.norm.clone(),
             rng: self.rng.clone(),
             trained: self.trained,
+            keep_norm: self.keep_norm,
         })
     }
 

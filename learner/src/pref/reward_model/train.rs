@@ -274,7 +274,9 @@ impl RewardModel {
             .filter(|s| seen.insert(Arc::as_ptr(s)))
             .map(|s| &**s)
             .collect();
-        self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
+        if !self.keep_norm {
+            self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
+        }
         let crops = if self.cfg.crops > 0 {
             self.draw_crops(data)?
         } else {
