@@ -945,6 +945,26 @@ fn a_person_the_robot_keeps_time_with_sees_it_stopped_until_they_answer() {
     for k in 0..budget - 1 {
         browser.press(ARROW_RIGHT, &format!("answer {k}"), &train.log);
     }
+    // The page knows their pace now: the time the rest of the sitting needs at it.
+    let left = poll(
+        30,
+        || browser.page("the time left at the person's pace", &train.log),
+        || {
+            browser
+                .exec(
+                    "const c = document.getElementById('p-left'); \
+                     return c.hidden ? null : c.textContent;",
+                    json!([]),
+                )
+                .as_str()
+                .map(str::to_string)
+        },
+    );
+    assert!(
+        left.starts_with("about ") && left.ends_with(" left at your pace"),
+        "{left}"
+    );
+    std::fs::write(shots.join("pace.png"), browser.screenshot()).unwrap();
     assert_eq!(
         api.env_steps(30),
         held_at,

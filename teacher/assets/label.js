@@ -53,6 +53,7 @@ const S = {
   nextTimer: null,
   busy: false,        // an answer or undo POST in flight
   sitting: 0,         // answers given since the page was opened
+  took: [],           // this sitting's times per answer, ms (its pace)
   total: null,        // answers by this labeller since the teacher started (server's count)
   unreachable: false,
   naming: false,      // the name dialog is open
@@ -195,6 +196,31 @@ function renderStatus(d) {
   $('p-training-text').textContent = held ? 'the robot has stopped: it waits for your answers'
     : d.training ? 'training' : 'learner not running';
   $('p-waiting').hidden = !d.waiting || held;
+  // Where the person stands: how well the robot already predicts them, and the time the
+  // rest of the sitting needs at their pace.
+  const agreeing = fin(d.agreement) && fin(d.agreement_of) && d.agreement_of > 0;
+  $('p-agree').hidden = !agreeing;
+  if (agreeing) {
+    const k = Math.round(d.agreement * d.agreement_of);
+    $('p-agree-n').textContent = k + ' of your last ' + d.agreement_of +
+      (d.agreement >= 0.9 && d.agreement_of >= 10 ? ' (more answers like these add little)' : '');
+  }
+  // NOTE: what is still to answer: the open queries and those the budget will still ask.
+  const pace = median(S.took);
+  const todo = fin(d.budget_left) ? d.budget_left + (fin(d.open) ? d.open : 0) : null;
+  const left = todo !== null && pace !== null ? todo * pace / 1000 : null;
+  $('p-left').hidden = left === null;
+  if (left !== null) {
+    $('p-left-t').textContent = left < 90 ? Math.max(1, Math.round(left)) + ' s' : Math.round(left / 60) + ' min';
+  }
+}
+
+// The median of `xs`, or null for none.
+function median(xs) {
+  if (!xs.length) return null;
+  const v = xs.slice().sort((a, b) => a - b);
+  const m = v.length >> 1;
+  return v.length % 2 ? v[m] : (v[m - 1] + v[m]) / 2;
 }
 
 function renderCounts() {
@@ -444,6 +470,7 @@ async function answer(choice) {
     took_ms: Math.max(0, Math.round(t0 - cur.shownAt)),
     replays: cur.replays.slice(),
   };
+  if (choice !== 'skip') S.took.push(body.took_ms);
   // Show the prefetched pair at once; the answer buttons stay off until the POST is through.
   S.answerAt = t0;
   if (S.pre) {

@@ -107,7 +107,7 @@ impl Outbox {
             rows
         };
         for (query, bytes, asked_at_ms, acked) in rows {
-            let (answer, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
+            let answer = crate::file::stored_answer(&bytes)
                 .with_context(|| format!("the answer to query {query} does not decode"))?;
             let kept = Kept {
                 answer,
@@ -466,5 +466,36 @@ mod tests {
         assert_eq!(o.acknowledged(&ack(&[5], &[])).unwrap(), 1);
         let left: Vec<Key> = o.due(Duration::ZERO).iter().map(key).collect();
         assert_eq!(left, vec![(5, "ann".to_string(), true)]);
+    }
+
+    #[test]
+    fn an_answer_an_older_build_kept_is_read_as_a_pairs_and_sent() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.sqlite");
+        let file = TeacherFile::open(&path).unwrap();
+        drop(Outbox::open(&file, "t-0").unwrap());
+        let a = person(7, "ada", false);
+        let old = pbrl_common::wire::v9::Answer {
+            query: a.query,
+            preference: a.preference,
+            teacher: a.teacher.clone(),
+            teacher_id: a.teacher_id.clone(),
+            took_ms: a.took_ms,
+            labeller: a.labeller.clone(),
+            replays: a.replays,
+            shadow: a.shadow,
+            repeat: a.repeat,
+        };
+        let bytes = bincode::serde::encode_to_vec(&old, code()).unwrap();
+        file.lock()
+            .execute(
+                "INSERT INTO outbox (teacher, query, labeller, repeat, message, asked_at_ms, kept_at_ms)
+                 VALUES ('t-0', 7, 'ada', 0, ?1, 5, 6)",
+                [bytes],
+            )
+            .unwrap();
+        let mut o = Outbox::open(&file, "t-0").unwrap();
+        assert_eq!(o.unacknowledged(), 1);
+        assert_eq!(o.due(Duration::from_secs(60)), vec![a]);
     }
 }

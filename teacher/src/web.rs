@@ -375,6 +375,8 @@ fn status_json(desk: &Desk, labeller: Option<&str>) -> serde_json::Value {
         "env_steps": fresh.map(|s| s.env_steps),
         "waiting": fresh.is_some_and(|s| s.waiting),
         "held": fresh.is_some_and(|s| s.held),
+        "agreement": fresh.and_then(|s| s.agreement),
+        "agreement_of": fresh.map_or(0, |s| s.agreement_of),
         "labellers": people,
     })
 }

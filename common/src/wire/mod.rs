@@ -413,6 +413,11 @@ pub struct LearnerStatus {
     pub held: bool,
     /// People labelling now (by the teachers' liveliness tokens).
     pub labellers: u32,
+    /// The share of the newest answers (`agreement_of` of them, up to 20) that the learnt
+    /// reward already agreed with before it trained on them (None before it is trained):
+    /// near 1, more answers of the same kind teach it little.
+    pub agreement: Option<f32>,
+    pub agreement_of: u32,
 }
 
 /// Everything that travels.
@@ -596,6 +601,38 @@ pub mod v9 {
         pub second: super::Shown,
         pub r_avg: Option<f32>,
         pub withdraw_at_steps: u64,
+    }
+
+    /// Format 9's answer (before rankings), as a teacher's file keeps it.
+    #[derive(Clone, Debug, Serialize, Deserialize)]
+    pub struct Answer {
+        pub query: u64,
+        pub preference: Preference,
+        pub teacher: String,
+        pub teacher_id: String,
+        pub took_ms: u64,
+        pub labeller: String,
+        pub replays: [u32; 2],
+        pub shadow: Option<Preference>,
+        pub repeat: bool,
+    }
+
+    impl Answer {
+        /// This build's answer: a pair's.
+        pub fn upgrade(self) -> super::Answer {
+            super::Answer {
+                query: self.query,
+                preference: self.preference,
+                teacher: self.teacher,
+                teacher_id: self.teacher_id,
+                took_ms: self.took_ms,
+                labeller: self.labeller,
+                replays: self.replays,
+                shadow: self.shadow,
+                repeat: self.repeat,
+                ranks: Vec::new(),
+            }
+        }
     }
 
     impl Query {

@@ -463,6 +463,8 @@ impl Learner {
             waiting: f.waiting(self.p.env_steps)?,
             held: self.held_since.is_some(),
             labellers: bus.labellers() as u32,
+            agreement: f.agreement().map(|(a, _)| a as f32),
+            agreement_of: f.agreement().map_or(0, |(_, n)| n as u32),
         }))
     }
 

@@ -59,12 +59,20 @@ pub(super) struct DeskStore {
     file: TeacherFile,
 }
 
-/// A query as the desk keeps it: this build's layout, or the layout before the withdrawal
-/// step (which an older build wrote), read as never withdrawn.
+/// A query as the desk keeps it: this build's layout; the layout before rankings, read as
+/// a pair; or the layout before the withdrawal step (which an older build wrote), read as
+/// never withdrawn.
 pub(super) fn stored_query(bytes: &[u8]) -> Result<Query> {
     if let Ok((q, n)) = bincode::serde::decode_from_slice::<Query, _>(bytes, code()) {
         if n == bytes.len() {
             return Ok(q);
+        }
+    }
+    if let Ok((q, n)) =
+        bincode::serde::decode_from_slice::<pbrl_common::wire::v9::Query, _>(bytes, code())
+    {
+        if n == bytes.len() {
+            return Ok(q.upgrade());
         }
     }
     let (q, _): (pbrl_common::wire::v8::Query, usize) =
@@ -118,8 +126,7 @@ impl DeskStore {
         }
         let rows: Vec<(Vec<u8>, i64)> = all_rows(&db, "SELECT message, given_at_ms FROM answers")?;
         for (bytes, at) in rows {
-            let (a, _): (Answer, usize) = bincode::serde::decode_from_slice(&bytes, code())
-                .context("an answer does not decode")?;
+            let a = crate::file::stored_answer(&bytes).context("an answer does not decode")?;
             out.answers.push((a, at as u64));
         }
         let rows: Vec<(i64, String, i64)> =

@@ -39,8 +39,8 @@ use crate::pref::reward_model::{Labelled, RewardModel, RewardModelState, Segment
 use crate::state::RngState;
 pub use choose::Side;
 pub(crate) use open::labelled;
-pub use open::Outgoing;
 use open::{AskedAt, InFlight};
+pub use open::{Outgoing, AGREEMENT_WINDOW};
 
 /// Counters of the feedback loop (saved with each checkpoint).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -145,6 +145,9 @@ pub struct Feedback {
     /// When the oldest answer D holds that the ensemble is not trained on yet was asked
     /// (to keep time with the teacher, [`Feedback::holds`]).
     untrained_from: Option<AskedAt>,
+    /// For the newest answers, the share of each one's pairs the ensemble ordered as the
+    /// teacher did before it trained on them (not saved: a restart counts afresh).
+    agreement: std::collections::VecDeque<f64>,
 }
 
 impl Feedback {
@@ -188,6 +191,7 @@ impl Feedback {
             observed: 0,
             top_up_stuck_at: None,
             untrained_from: None,
+            agreement: std::collections::VecDeque::new(),
             // NOTE: its own stream of the run's seed, apart from the backbone's.
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f00d_0000_0001),
             counters: Counters {

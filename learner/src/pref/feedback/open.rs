@@ -13,7 +13,9 @@ use crate::pref::labels::{Stored, StoredTrajectory};
 use crate::pref::query::{Candidate, Sampler, TrajKey};
 use crate::pref::reward_model::{Labelled, Segment};
 
-/// A query asked and not answered yet.
+/// The newest answers whose agreement with the ensemble is kept ([`Feedback::agreement`]).
+pub const AGREEMENT_WINDOW: usize = 20;
+
 /// A query to send, encoded once: the message the label store keeps is the message sent
 /// (and sent again). It reads as its query.
 #[derive(Clone, Debug)]
@@ -225,6 +227,7 @@ impl Feedback {
                         }
                     };
                     let labels = self.labelled(&attempts, a.preference, &a.ranks)?;
+                    self.agree(&labels)?;
                     self.data.extend(labels);
                 }
             }
@@ -258,6 +261,41 @@ impl Feedback {
             queries: vec![a.query],
             repeats: Vec::new(),
         }))
+    }
+
+    /// How far the reward ensemble as it stands (not yet trained on these `labels`, one
+    /// answer's) agrees with them: the share of their pairs it orders as the teacher did
+    /// (pairs the teacher called equal left out), kept for the newest [`AGREEMENT_WINDOW`]
+    /// answers. Nothing before the ensemble is trained.
+    fn agree(&mut self, labels: &[Labelled]) -> Result<()> {
+        let hard: Vec<&Labelled> = labels.iter().filter(|l| !l.is_equal()).collect();
+        if !self.model.trained() || hard.is_empty() {
+            return Ok(());
+        }
+        let pairs: Vec<(&Segment, &Segment)> =
+            hard.iter().map(|l| (&*l.first, &*l.second)).collect();
+        let probs = self.model.preference_probs(&pairs)?;
+        let members = probs.len().max(1) as f32;
+        let right = hard
+            .iter()
+            .enumerate()
+            .filter(|(k, l)| {
+                let p = probs.iter().map(|m| m[*k]).sum::<f32>() / members;
+                (p > 0.5) == (l.target > 0.5)
+            })
+            .count();
+        if self.agreement.len() == AGREEMENT_WINDOW {
+            self.agreement.pop_front();
+        }
+        self.agreement.push_back(right as f64 / hard.len() as f64);
+        Ok(())
+    }
+
+    /// The share of the newest answers (at most [`AGREEMENT_WINDOW`]) the ensemble agreed
+    /// with before it trained on them, and how many answers that is (None before any).
+    pub fn agreement(&self) -> Option<(f64, usize)> {
+        let n = self.agreement.len();
+        (n > 0).then(|| (self.agreement.iter().sum::<f64>() / n as f64, n))
     }
 
     /// Forget the whole trajectories no query in flight compares and D does not share:

@@ -479,3 +479,52 @@ fn rankings_of_a_known_order_are_asked_stored_as_all_their_pairs_and_learnt() {
     assert_eq!(targets(&g.data), targets(&f.data));
     assert!(seqs.iter().any(|&s| s != seqs[0]));
 }
+
+#[test]
+fn the_agreement_is_counted_on_answers_the_trained_ensemble_had_not_seen() {
+    let cfg = PrefConfig {
+        unsup_steps: 0,
+        queries_per_session: 8,
+        feedback_interval: 100,
+        query_recent: 0,
+        ..PrefConfig::plain()
+    };
+    let mut f = Feedback::new(&cfg, "run", 2, 1, 0, Path::new(":memory:")).unwrap();
+    for seq in 0..40 {
+        f.observe(&msg(seq));
+    }
+    // The larger observation is better; answers before any training count nothing.
+    let answer_all = |f: &mut Feedback, asked: &[Outgoing]| {
+        for q in asked {
+            let (a, b) = (
+                f.segment(q.first.id).unwrap().obs[0],
+                f.segment(q.second.id).unwrap().obs[0],
+            );
+            let p = if a > b {
+                Preference::First
+            } else {
+                Preference::Second
+            };
+            f.answer(&Answer::scripted(q.id, p, "oracle", "o-0", 1))
+                .unwrap();
+        }
+    };
+    let done = f.start(0, true).unwrap().unwrap();
+    let asked = f.finish(done, 0).unwrap().0;
+    answer_all(&mut f, &asked);
+    assert_eq!(f.agreement(), None, "nothing trained yet");
+    for session in 1..=6 {
+        // Train on what is answered, then a session more, answered.
+        let env_steps = 100 * session;
+        while let Some(done) = f.start(env_steps, true).unwrap() {
+            let asked = f.finish(done, env_steps).unwrap().0;
+            answer_all(&mut f, &asked);
+        }
+    }
+    let (share, n) = f.agreement().unwrap();
+    assert_eq!(n, AGREEMENT_WINDOW);
+    assert!(
+        share > 0.7,
+        "a trained ensemble agrees with a plain order: {share}"
+    );
+}
