@@ -7,9 +7,13 @@
 //! GET  /                                   the page
 //! GET  /label.css, /label.js, /label-draw.js, /label-start.js   its style sheet and scripts
 //! GET  /api/v1/status?labeller=NAME        open queries, answers of NAME, budget left, ...
-//! GET  /api/v1/next?labeller=NAME[&exclude=ID]   a pair to judge (200), or none open (204)
+//! GET  /api/v1/next?labeller=NAME[&exclude=ID]   a pair to judge ("kind": "pair", "left",
+//!                                          "right") or attempts to rank ("kind": "rank",
+//!                                          "attempts": [...]) (200), or none open (204)
 //! POST /api/v1/answer {"labeller", "query", "choice": left|right|equal|skip,
 //!                      "took_ms", "replays": [left, right]}
+//!                     or, for a ranking, "places": [p0, p1, ...] in the order shown
+//!                     (0 the best, ties sharing a place) instead of the choice
 //! POST /api/v1/undo   {"labeller"}         withdraw NAME's last answer (within undo_s)
 //! ```
 //!
@@ -35,7 +39,7 @@ use pbrl_actor::WorldConfig;
 use pbrl_common::wire::Shown as ShownTrajectory;
 use serde::Deserialize;
 
-use crate::human::{Choice, Desk, Refused};
+use crate::human::{Choice, Desk, Refused, Verdict};
 use crate::teacher::lock;
 
 /// The API's version.
@@ -212,8 +216,8 @@ impl HttpConfig {
     }
 }
 
-/// A query's two sides, drawn.
-type Drawn = (u64, Arc<[Scene; 2]>);
+/// A query's attempts, drawn.
+type Drawn = (u64, Arc<Vec<Scene>>);
 
 /// A refusal: its status and message (`{"error": ...}`).
 struct Bad(StatusCode, String);
@@ -433,8 +437,8 @@ async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response 
         None => {
             let world = web.world.clone();
             let q = shown.query.clone();
-            let drawn = tokio::task::spawn_blocking(move || -> Result<[Scene; 2]> {
-                Ok([draw(&world, &q.first)?, draw(&world, &q.second)?])
+            let drawn = tokio::task::spawn_blocking(move || -> Result<Vec<Scene>> {
+                q.attempts().map(|a| draw(&world, a)).collect()
             })
             .await;
             let scenes = match drawn {
@@ -453,6 +457,18 @@ async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response 
             scenes
         }
     };
+    if scenes.len() > 2 {
+        // A ranking: every attempt, in the order this person is shown them.
+        let attempts: Vec<&Scene> = shown.order.iter().map(|&k| &scenes[k]).collect();
+        return Json(serde_json::json!({
+            "query": id,
+            "display": shown.display,
+            "kind": "rank",
+            "steps": attempts.iter().map(|s| s.steps).max().unwrap_or(0),
+            "attempts": attempts,
+        }))
+        .into_response();
+    }
     let (left, right) = if shown.swapped {
         (&scenes[1], &scenes[0])
     } else {
@@ -461,6 +477,7 @@ async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response 
     Json(serde_json::json!({
         "query": id,
         "display": shown.display,
+        "kind": "pair",
         "steps": left.steps.max(right.steps),
         "left": left,
         "right": right,
@@ -473,7 +490,12 @@ async fn next(State(web): State<Web>, UrlQuery(who): UrlQuery<Who>) -> Response 
 struct AnswerBody {
     labeller: String,
     query: u64,
-    choice: Choice,
+    /// A pair's answer (or skip for either kind).
+    #[serde(default)]
+    choice: Option<Choice>,
+    /// A ranking's answer: each attempt's place in the order shown (0 the best).
+    #[serde(default)]
+    places: Option<Vec<u8>>,
     #[serde(default)]
     took_ms: u64,
     #[serde(default)]
@@ -509,7 +531,16 @@ async fn answer(State(web): State<Web>, headers: HeaderMap, body: Bytes) -> Resp
     // NOTE: a person needs an hour at most per pair; anything longer is a broken clock.
     let took_ms = a.took_ms.min(3_600_000);
     let replays = a.replays.map(|r| r.min(1000));
-    match lock(&web.desk).answer(&a.labeller, a.query, a.choice, took_ms, replays) {
+    let verdict =
+        match (a.choice, a.places) {
+            (Some(c), None) => Verdict::Choice(c),
+            (None, Some(p)) => Verdict::Places(p),
+            _ => return error(
+                StatusCode::BAD_REQUEST,
+                "choice or places: give exactly one (a choice for a pair, places for a ranking)",
+            ),
+        };
+    match lock(&web.desk).give(&a.labeller, a.query, verdict, took_ms, replays) {
         Ok(answered) => {
             Json(serde_json::json!({ "ok": true, "answered": answered })).into_response()
         }

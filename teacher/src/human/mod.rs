@@ -100,6 +100,14 @@ pub enum Choice {
     Skip,
 }
 
+/// A person's answer as given on the page: a choice on a pair, or each attempt's place in
+/// a ranking (in the order shown, 0 the best, ties sharing a place).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    Choice(Choice),
+    Places(Vec<u8>),
+}
+
 /// Why the desk refused a request (the HTTP side's 4xx).
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum Refused {
@@ -129,6 +137,9 @@ pub struct Showing {
     /// The number the page shows for this pair (1000-9999): the same on a reload, another
     /// for a repeat, so that a person cannot tell a consistency check by its number.
     pub display: u32,
+    /// A ranking's attempts in the order shown: position k shows the query's attempt
+    /// `order[k]` (for a pair, `swapped` says).
+    pub order: Vec<usize>,
 }
 
 /// An answer a person gave that is still on the desk (in its undo window, or past it and
@@ -356,6 +367,18 @@ impl Desk {
         self.showing_hash(query, labeller, repeat) & 1 == 1
     }
 
+    /// The order a ranking's attempts show in for `labeller`: shown position k holds the
+    /// query's attempt `order[k]` (the same on a reload, drawn afresh for a repeat).
+    pub fn order(&self, query: u64, labeller: &str, repeat: bool, attempts: usize) -> Vec<usize> {
+        let h = self.showing_hash(query, labeller, repeat);
+        let mut order: Vec<usize> = (0..attempts).collect();
+        order.sort_by_key(|&k| {
+            (h ^ (k as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15))
+                .wrapping_mul(0xff51_afd7_ed55_8ccd)
+        });
+        order
+    }
+
     /// The pair's number on the page: a repeat's is never its first showing's.
     fn display(&self, query: u64, labeller: &str, repeat: bool) -> u32 {
         let number =
@@ -447,8 +470,10 @@ impl Desk {
                 .map_err(|e| Refused::Failed(format!("keeping the lease failed: {e:#}")))?;
             self.leases.insert(id, (labeller.to_string(), now));
         }
+        let attempts = self.queries[&id].len();
         Ok(Some(Showing {
             query: self.queries[&id].clone(),
+            order: self.order(id, labeller, repeat, attempts),
             swapped: self.swapped(id, labeller, repeat),
             repeat,
             display: self.display(id, labeller, repeat),
@@ -465,10 +490,23 @@ impl Desk {
         took_ms: u64,
         replays: [u32; 2],
     ) -> Result<u64, Refused> {
+        self.give(labeller, query, Verdict::Choice(choice), took_ms, replays)
+    }
+
+    /// A person's answer, a choice on a pair or places in a ranking ([`Desk::answer`]).
+    pub fn give(
+        &mut self,
+        labeller: &str,
+        query: u64,
+        verdict: Verdict,
+        took_ms: u64,
+        replays: [u32; 2],
+    ) -> Result<u64, Refused> {
         check_name(labeller)?;
         let check = self.answerable(labeller, query)?;
         let repeat = check.is_some();
-        let a = self.person_answer(labeller, query, repeat, choice, took_ms, replays);
+        let skip = verdict == Verdict::Choice(Choice::Skip);
+        let a = self.person_answer(labeller, query, repeat, verdict, took_ms, replays)?;
         let now = now_ms();
         self.store
             .answer(&a, now)
@@ -492,7 +530,7 @@ impl Desk {
         person.total += 1;
         person.undone = None;
         let answered = person.total;
-        if !repeat && choice != Choice::Skip {
+        if !repeat && !skip {
             self.plan_repeats(query, labeller, answered)
                 .map_err(|e| Refused::Failed(format!("planning a repeat failed: {e:#}")))?;
         }
@@ -525,24 +563,53 @@ impl Desk {
         Ok(None)
     }
 
-    /// The answer a choice on the pair as shown means (sides put back, the oracle's shadow
-    /// beside it when asked for).
+    /// The answer a verdict on the query as shown means (sides or attempts put back in the
+    /// query's order, the oracle's shadow beside it when asked for); a verdict that does not
+    /// fit the query is refused.
     fn person_answer(
         &mut self,
         labeller: &str,
         query: u64,
         repeat: bool,
-        choice: Choice,
+        verdict: Verdict,
         took_ms: u64,
         replays: [u32; 2],
-    ) -> Answer {
+    ) -> Result<Answer, Refused> {
         let q = self.queries[&query].clone();
         let swapped = self.swapped(query, labeller, repeat);
-        let preference = match (choice, swapped) {
-            (Choice::Left, false) | (Choice::Right, true) => Preference::First,
-            (Choice::Right, false) | (Choice::Left, true) => Preference::Second,
-            (Choice::Equal, _) => Preference::Equal,
-            (Choice::Skip, _) => Preference::Skip,
+        let n = q.len();
+        let (preference, ranks) = match verdict {
+            Verdict::Choice(Choice::Skip) => (Preference::Skip, Vec::new()),
+            Verdict::Choice(_) if n > 2 => {
+                return Err(Refused::Invalid(format!(
+                    "query {query} asks to rank {n} attempts: send \"places\", one per attempt as shown (or the choice skip)"
+                )))
+            }
+            Verdict::Choice(choice) => (
+                match (choice, swapped) {
+                    (Choice::Left, false) | (Choice::Right, true) => Preference::First,
+                    (Choice::Right, false) | (Choice::Left, true) => Preference::Second,
+                    _ => Preference::Equal,
+                },
+                Vec::new(),
+            ),
+            Verdict::Places(shown) => {
+                if n == 2 || shown.len() != n || shown.iter().any(|&p| p as usize >= n) {
+                    return Err(Refused::Invalid(format!(
+                        "places {shown:?}: query {query} shows {n} attempts{}",
+                        if n == 2 {
+                            ", a pair: send a choice"
+                        } else {
+                            "; send one place each, in the order shown, 0 the best"
+                        }
+                    )));
+                }
+                let mut ranks = vec![0u8; n];
+                for (k, &attempt) in self.order(query, labeller, repeat, n).iter().enumerate() {
+                    ranks[attempt] = shown[k];
+                }
+                (Preference::of_places(ranks[0], ranks[1]), ranks)
+            }
         };
         let replays = if swapped {
             [replays[1], replays[0]]
@@ -554,7 +621,7 @@ impl Desk {
             .shadow
             .is_some()
             .then(|| crate::teacher::judge_query(&mut self.oracle, &q));
-        Answer {
+        Ok(Answer {
             query,
             preference,
             teacher: "human".into(),
@@ -564,8 +631,8 @@ impl Desk {
             replays,
             shadow,
             repeat,
-            ranks: Vec::new(),
-        }
+            ranks,
+        })
     }
 
     fn plan_repeats(&mut self, query: u64, labeller: &str, answered: u64) -> Result<()> {

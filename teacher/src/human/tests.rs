@@ -318,3 +318,52 @@ fn a_share_of_answers_is_asked_again_of_the_same_person_and_of_another() {
     assert!(repeats.contains(&("bob".into(), true)));
     assert!(repeats.contains(&("ann".into(), true)));
 }
+
+#[test]
+fn a_ranking_is_shown_in_a_persons_order_and_its_places_are_put_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut d = desk(&dir.path().join("t.sqlite"), |c| c.undo_s = 0);
+    let mut q = query(1, 3.0, 1.0);
+    let mut third = q.first.clone();
+    third.id = 9;
+    q.more = vec![third];
+    d.receive(q).unwrap();
+    d.receive(query(2, 1.0, 2.0)).unwrap();
+    let shown = d.next("ada", None).unwrap().unwrap();
+    assert_eq!(shown.query.id, 1);
+    let order = shown.order.clone();
+    let mut sorted = order.clone();
+    sorted.sort();
+    assert_eq!(sorted, [0, 1, 2], "every attempt shown once");
+    assert_eq!(
+        d.next("ada", None).unwrap().unwrap().order,
+        order,
+        "the same on a reload"
+    );
+    // A pair's choice on a ranking, or places for two of its three, are refused.
+    for (v, why) in [
+        (Verdict::Choice(Choice::Left), "asks to rank 3"),
+        (Verdict::Places(vec![0, 1]), "shows 3 attempts"),
+        (Verdict::Places(vec![0, 1, 3]), "shows 3 attempts"),
+    ] {
+        match d.give("ada", 1, v, 10, [0, 0]) {
+            Err(Refused::Invalid(e)) => assert!(e.contains(why), "{e}"),
+            other => panic!("{other:?}"),
+        }
+    }
+    match d.give("ada", 2, Verdict::Places(vec![0, 1]), 10, [0, 0]) {
+        Err(Refused::Invalid(e)) => assert!(e.contains("a pair"), "{e}"),
+        other => panic!("{other:?}"),
+    }
+    // Places as shown: the attempt shown first is the best, then the second, the third.
+    d.give("ada", 1, Verdict::Places(vec![0, 1, 2]), 10, [0, 0])
+        .unwrap();
+    let sent = d.due(ms(60_000)).unwrap();
+    let a = sent.iter().find(|a| a.query == 1).unwrap();
+    let mut want = vec![0u8; 3];
+    for (k, &attempt) in order.iter().enumerate() {
+        want[attempt] = k as u8;
+    }
+    assert_eq!(a.ranks, want);
+    assert_eq!(a.preference, Preference::of_places(want[0], want[1]));
+}
