@@ -5,14 +5,19 @@ A minimal client for the human teacher's HTTP/JSON API (protocol 1), standard li
 The teacher serves the labelling page at `/` and this API beside it:
 
     GET  /api/v1/status?labeller=NAME              progress: open queries, answers, budget, ...
-    GET  /api/v1/next?labeller=NAME[&exclude=ID]   200 with a pair, or 204 when nothing is open
+    GET  /api/v1/next?labeller=NAME[&exclude=ID]   200 with a pair or a ranking, or 204 when
+                                                   nothing is open
     POST /api/v1/answer  {"labeller", "query", "choice", "took_ms", "replays"}
                          choice is "left" | "right" | "equal" | "skip"   -> {"ok": true, "answered": N}
+                         a ranking: "places" (one per attempt as shown, 0 the best, ties
+                         sharing a place) instead of the choice
     POST /api/v1/undo    {"labeller"}   withdraws this labeller's last answer -> {"query": ID};
                          409 {"error": "nothing to undo"} when there is none. The withdrawn
                          query comes back from the next /next call.
 
-A pair is {"query", "display", "steps", "left": ATTEMPT, "right": ATTEMPT}; an attempt carries, per frame
+A pair is {"query", "display", "kind": "pair", "steps", "left": ATTEMPT, "right": ATTEMPT}; a
+ranking is {"query", "display", "kind": "rank", "steps", "attempts": [ATTEMPT, ...]} (three or
+four, in the order shown to this labeller); an attempt carries, per frame
 (steps + 1 entries), world positions in metres (z up): frames.spoon, frames.mouth, frames.head,
 frames.arm (joint origins, end effector, spoon) and frames.food (one point per particle), and
 what a person would feel or see: readout.distance (spoon to mouth, m), readout.speed (m/s),
@@ -30,7 +35,9 @@ spilled and on the person) with a sparkline of the distance, and asks a/b/=/s/u/
 Non-interactive (tests):
     python3 deploy/label.py --url ... --name ana --answer alternate --count 5
 answers 5 pairs (alternate cycles left, right, equal), one line each
-("answered query 17: left"), and exits 0; exits 1 when no pair came for --timeout seconds.
+("answered query 17: left"), and exits 0; exits 1 when no pair came for --timeout seconds. A
+ranking is answered in the order shown for left, reversed for right, all tied for equal
+("answered query 18: places [0, 1, 2]").
 """
 
 from __future__ import annotations
@@ -118,16 +125,20 @@ class Client:
         status, pair = self.call("GET", "/api/v1/next", query={"labeller": self.name})
         return pair if status != 204 else None
 
-    def answer(self, query, choice: str, took_ms: int, deadline: float | None = None):
-        """Posts an answer, retrying while the teacher is unreachable (until `deadline`).
-        A 409 for a retry means the earlier try got through: it counts as done."""
+    def answer(self, query, choice, took_ms: int, deadline: float | None = None):
+        """Posts an answer (a choice, or a ranking's places as a list), retrying while the
+        teacher is unreachable (until `deadline`). A 409 for a retry means the earlier try
+        got through: it counts as done."""
         body = {
             "labeller": self.name,
             "query": query,
-            "choice": choice,
             "took_ms": max(0, int(took_ms)),
             "replays": [0, 0],  # nothing is played back in a terminal
         }
+        if isinstance(choice, list):
+            body["places"] = choice
+        else:
+            body["choice"] = choice
         tries = 0
         while True:
             tries += 1
@@ -201,11 +212,36 @@ def sparkline(xs, top: float, width: int = 40) -> str:
     return "".join(out)
 
 
+def attempts_of(pair: dict) -> list:
+    """(label, attempt) for each attempt shown: A and B of a pair, 1, 2, ... of a ranking."""
+    if pair.get("kind") == "rank":
+        return [(str(k + 1), a) for k, a in enumerate(pair.get("attempts") or [])]
+    return [("A", pair.get("left")), ("B", pair.get("right"))]
+
+
+def places_of(text: str, n: int):
+    """A ranking typed best to worst ("2 3 1", ties joined by "=": "2=3 1") as each
+    attempt's place in the order shown (0 the best), or None if it does not name each of
+    the n attempts once."""
+    groups = [g for g in text.replace(",", " ").split() if g]
+    places, seen = [None] * n, 0
+    for g in groups:
+        members = g.split("=")
+        if not all(m.isdigit() and 1 <= int(m) <= n for m in members):
+            return None
+        for m in members:
+            if places[int(m) - 1] is not None:
+                return None
+            places[int(m) - 1] = seen
+        seen += len(members)
+    return places if None not in places else None
+
+
 def describe(pair: dict) -> str:
     sides = []
-    for label, side in (("A", "left"), ("B", "right")):
+    for label, attempt in attempts_of(pair):
         try:
-            sides.append((label, summarise(pair.get(side) or {})))
+            sides.append((label, summarise(attempt or {})))
         except ValueError as e:
             return f"pair of {pair.get('steps', '?')} steps: cannot summarise attempt {label}: {e}"
     top = max(max(s["distance"]) for _, s in sides)
@@ -281,6 +317,10 @@ def run_auto(client: Client, mode: str, count: int, timeout: float, pace: float 
                   f"{i} of {count} answered", file=sys.stderr)
             return 1
         choice = ALTERNATE[i % len(ALTERNATE)] if mode == "alternate" else mode
+        if pair.get("kind") == "rank" and choice != "skip":
+            n = len(pair.get("attempts") or [])
+            choice = {"left": list(range(n)), "right": list(range(n))[::-1],
+                      "equal": [0] * n}[choice]
         # A person's pace: look at the pair this long before answering.
         time.sleep(pace)
         try:
@@ -293,7 +333,8 @@ def run_auto(client: Client, mode: str, count: int, timeout: float, pace: float 
         except Unreachable as e:
             print(f"error: {e}", file=sys.stderr)
             return 1
-        print(f"answered query {pair['query']}: {choice}", flush=True)
+        said = f"places {choice}" if isinstance(choice, list) else choice
+        print(f"answered query {pair['query']}: {said}", flush=True)
     return 0
 
 
@@ -311,9 +352,14 @@ def run_interactive(client: Client) -> int:
         print(f"pair {pair.get('display', '?')}")
         print(describe(pair))
         shown = time.monotonic()
+        ranking = pair.get("kind") == "rank"
+        n = len(pair.get("attempts") or [])
         while True:
             try:
-                key = input("A better (a), B better (b), equal (=), can't tell (s), undo (u), quit (q)? ")
+                key = input(f"rank {', '.join(str(k + 1) for k in range(n))} best to worst "
+                            "(e.g. '2 3 1', ties '2=3 1'), can't tell (s), undo (u), quit (q)? "
+                            if ranking else
+                            "A better (a), B better (b), equal (=), can't tell (s), undo (u), quit (q)? ")
             except EOFError:
                 print()
                 return 0
@@ -330,9 +376,10 @@ def run_interactive(client: Client) -> int:
                 except Unreachable as e:
                     print(f"{e}; undo not sent")
                 continue
-            choice = KEYS.get(key)
+            choice = KEYS.get(key) if not ranking or key == "s" else places_of(key, n)
             if choice is None:
-                print("please type a, b, =, s, u or q")
+                print(f"please name each of the {n} attempts once, best first (or s, u, q)"
+                      if ranking else "please type a, b, =, s, u or q")
                 continue
             try:
                 res = client.answer(pair["query"], choice, (time.monotonic() - shown) * 1000)

@@ -47,5 +47,19 @@ class Summary(unittest.TestCase):
         self.assertIn("no readout", label.describe({"left": {}, "right": attempt()}))
 
 
+class Ranking(unittest.TestCase):
+    def test_a_ranking_typed_best_to_worst_gives_each_attempt_its_place(self):
+        self.assertEqual(label.places_of("2 3 1", 3), [2, 0, 1])
+        self.assertEqual(label.places_of("2=3 1", 3), [2, 0, 0])
+        self.assertEqual(label.places_of("4 1=2 3", 4), [1, 1, 3, 0])
+        for bad in ("2 2 1", "1 2", "1 2 4", "a b c", ""):
+            self.assertIsNone(label.places_of(bad, 3), bad)
+
+    def test_a_ranking_is_described_attempt_by_attempt(self):
+        text = label.describe({"kind": "rank", "attempts": [attempt(), attempt(), attempt()]})
+        for k in ("1:", "2:", "3:"):
+            self.assertIn(k, text)
+
+
 if __name__ == "__main__":
     unittest.main()

@@ -668,6 +668,37 @@ preset = ["default", "paper"]
         check_flags(&cells).unwrap();
     }
 
+    /// Every grid file under `results/` (the committed experiments, and the copies `pbrl exp
+    /// run` keeps with their runs) still parses, and every run's flags still parse as
+    /// `pbrl train`'s: a table's command stays one that runs.
+    #[test]
+    fn every_grid_committed_under_results_parses_and_its_flags_check() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        let mut grids = Vec::new();
+        let mut dirs = vec![root.join("results")];
+        while let Some(dir) = dirs.pop() {
+            for e in std::fs::read_dir(&dir).unwrap() {
+                let path = e.unwrap().path();
+                let name = path.file_name().unwrap().to_string_lossy().to_string();
+                if path.is_dir() {
+                    dirs.push(path);
+                } else if name.starts_with("grid") && name.ends_with(".toml") {
+                    grids.push(path);
+                }
+            }
+        }
+        assert!(grids.len() >= 10, "found {grids:?}");
+        // NOTE: a grid's people are paths from the repository's root.
+        std::env::set_current_dir(root).unwrap();
+        for path in grids {
+            let g = Grid::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+            let cells = g
+                .cells()
+                .unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+            check_flags(&cells).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        }
+    }
+
     #[test]
     fn variants_are_methods_whose_flags_override_the_set() {
         let g = Grid::parse(

@@ -523,12 +523,6 @@ impl TrainArgs {
         // NOTE: a person at the page (or a scripted teacher at a person's pace) is asked
         // just in time; scripted teachers as before.
         self.teacher.validate()?;
-        if self.teacher.kind == Who::Human && cfg.pref.query_attempts > 2 {
-            anyhow::bail!(
-                "query_attempts is {}: the labelling page shows pairs (rankings reach scripted teachers and `pbrl teacher` for now)",
-                cfg.pref.query_attempts
-            );
-        }
         if self.teacher.is_person() && !self.external_teacher {
             config::apply_preset(&mut cfg, &config::person_preset(), &self.learn.explicit)?;
             cfg.validate()?;

@@ -71,6 +71,8 @@ fn replies_are_read_to_their_end() {
 // ---------- the tests ----------
 
 const ARROW_RIGHT: &str = "\u{E014}";
+const BACKSPACE: &str = "\u{E003}";
+const ENTER: &str = "\u{E007}";
 
 #[test]
 #[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
@@ -886,7 +888,9 @@ fn a_person_the_robot_keeps_time_with_sees_it_stopped_until_they_answer() {
     let _one = one_at_a_time();
     assert!(browser_wanted("the keeping-time browser test"));
     let dir = tempfile::tempdir().unwrap();
-    let budget = 4;
+    // NOTE: 2 answers, both asked at the first session (a session asks what the episodes
+    // so far allow, one query a trajectory; the robot then stands still, so no more come).
+    let budget = 2;
     let max = format!("--max-feedback={budget}");
     let (addr, out, train) = human_train(
         dir.path(),
@@ -989,4 +993,86 @@ fn a_person_the_robot_keeps_time_with_sees_it_stopped_until_they_answer() {
         },
         || (!chip().contains("stopped")).then_some(()),
     );
+}
+
+#[test]
+#[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
+fn a_person_ranks_three_attempts_with_keys_and_the_store_keeps_each_place() {
+    let _one = one_at_a_time();
+    assert!(browser_wanted("the ranking browser test"));
+    let dir = tempfile::tempdir().unwrap();
+    let (addr, out, train) = human_train(
+        dir.path(),
+        "rank",
+        &[
+            "--undo-s=1",
+            "--repeat-share=0",
+            "--query-attempts=3",
+            "--max-feedback=2",
+            "--feedback-span=0",
+        ],
+    );
+    let browser = Browser::open(dir.path());
+    browser.label(&addr, "Ria");
+    let query = browser.playing(120, "a ranking playing", &train.log);
+    let shown = browser.exec(
+        "return [...document.querySelectorAll('main > section.attempt')] \
+         .filter((s) => !s.hidden).map((s) => s.id);",
+        json!([]),
+    );
+    assert_eq!(shown, json!(["att-r0", "att-r1", "att-r2"]));
+    assert_eq!(browser.body("kind"), "rank");
+    let places = || {
+        browser.exec(
+            "return ['r0', 'r1', 'r2'].map((s) => document.getElementById('place-' + s).textContent);",
+            json!([]),
+        )
+    };
+    // The second shown is best, the third ties with it; the first places itself last.
+    browser.key("2");
+    browser.key("=");
+    browser.key("3");
+    assert_eq!(places(), json!(["3rd", "tied 1st", "tied 1st"]));
+    // Taken back and placed again the same way.
+    browser.key(BACKSPACE);
+    assert_eq!(places(), json!(["", "1st", ""]));
+    browser.key("=");
+    browser.key("3");
+    assert_eq!(places(), json!(["3rd", "tied 1st", "tied 1st"]));
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("screenshots/labelling");
+    std::fs::create_dir_all(&shots).unwrap();
+    std::fs::write(shots.join("rank.png"), browser.screenshot()).unwrap();
+    browser.key(ENTER);
+    let db = out.join("labels.sqlite");
+    let rows = poll(
+        60,
+        || format!("the ranking of query {query} stored{}", train.tail()),
+        || {
+            let rows = sql(
+                &db,
+                &format!("SELECT ranks, labeller FROM queries WHERE id = {query}"),
+            )
+            .ok()?;
+            rows.first().filter(|r| r["ranks"].is_string()).cloned()
+        },
+    );
+    let mut ranks: Vec<u8> = rows["ranks"]
+        .as_str()
+        .unwrap()
+        .split(',')
+        .map(|p| p.parse().unwrap())
+        .collect();
+    assert_eq!(rows["labeller"], "Ria");
+    ranks.sort();
+    assert_eq!(
+        ranks,
+        [0, 0, 2],
+        "two tied best and one last, in the query's order"
+    );
+    let attempts = sql(
+        &db,
+        &format!("SELECT k FROM query_attempts WHERE query = {query}"),
+    )
+    .unwrap();
+    assert_eq!(attempts, [json!({"k": 2})]);
 }

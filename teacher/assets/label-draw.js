@@ -4,12 +4,14 @@
 
 // ---------- drawing ----------
 function buildViews(p) {
-  const sig = p.views.map((v) => v.name + '|' + v.title).join('/');
+  const sides = sidesOf(p);
+  const sig = sides.join(',') + ':' + p.views.map((v) => v.name + '|' + v.title).join('/');
   if (sig === S.viewSig) return;
   S.viewSig = sig;
   ro.disconnect();
-  for (const side of SIDES) {
-    const host = $(side === 'left' ? 'att-left' : 'att-right').querySelector('.views');
+  for (const side of Object.keys(S.canvases)) if (!sides.includes(side)) { S.canvases[side] = []; S.strips[side] = []; }
+  for (const side of sides) {
+    const host = $('att-' + side).querySelector('.views');
     host.textContent = '';
     S.canvases[side] = [];
     for (const v of p.views) {
@@ -28,8 +30,8 @@ function buildViews(p) {
       S.canvases[side].push({ name: v.name, canvas: c, ctx: c.getContext('2d'), wrap, w: 0, h: 0 });
     }
   }
-  for (const side of SIDES) {
-    const host = $(side === 'left' ? 'att-left' : 'att-right');
+  for (const side of sides) {
+    const host = $('att-' + side);
     const old = host.querySelector('.strips');
     if (old) old.remove();
     const box = document.createElement('div');
@@ -84,13 +86,13 @@ function buildViews(p) {
     host.appendChild(box);
   }
   measure();
-  for (const side of SIDES) for (const c of S.canvases[side].concat(S.strips[side])) ro.observe(c.wrap);
+  for (const side of sides) for (const c of S.canvases[side].concat(S.strips[side])) ro.observe(c.wrap);
 }
 
 // The numbers beside the strips, for the pair now on screen.
 function showNumbers(p) {
-  for (const side of SIDES) {
-    const host = $(side === 'left' ? 'att-left' : 'att-right');
+  for (const side of sidesOf(p)) {
+    const host = $('att-' + side);
     const r = p.read[side];
     for (const el of host.querySelectorAll('.strip [data-v]')) {
       const q = el.closest('.strip').dataset.q;
@@ -100,7 +102,7 @@ function showNumbers(p) {
     const from = r ? r.from : 0;
     host.querySelector('.strips [data-v=judged-s]').textContent = ((n - from) / FPS).toFixed(1);
   }
-  const a = p.att.left;
+  const a = p.att[sidesOf(p)[0]];
   const n = a.frames.spoon.length - 1;
   const lead = fin(a.segment_from) ? a.segment_from : 0;
   $('clip-len').textContent = (n / FPS).toFixed(1) + ' s' +
@@ -109,8 +111,8 @@ function showNumbers(p) {
 
 function measure() {
   const dpr = window.devicePixelRatio || 1;
-  for (const side of SIDES) {
-    for (const c of S.canvases[side].concat(S.strips[side])) {
+  for (const side of Object.keys(S.canvases)) {
+    for (const c of S.canvases[side].concat(S.strips[side] || [])) {
       const r = c.wrap.getBoundingClientRect();
       const w = Math.max(1, Math.floor(r.width)), h = Math.max(1, Math.floor(r.height));
       if (w !== c.w || h !== c.h || c.dpr !== dpr) {
@@ -128,8 +130,8 @@ const ro = new ResizeObserver(() => { measure(); if (S.cur) draw(); });
 // No pair: nothing of the last one may linger on screen.
 function blank() {
   S.blank = true;
-  for (const side of SIDES) {
-    for (const c of S.canvases[side].concat(S.strips[side])) {
+  for (const side of Object.keys(S.canvases)) {
+    for (const c of S.canvases[side].concat(S.strips[side] || [])) {
       c.ctx.setTransform(1, 0, 0, 1, 0, 0);
       c.ctx.clearRect(0, 0, c.canvas.width, c.canvas.height);
     }
@@ -147,24 +149,24 @@ function draw() {
   const f = Math.floor(S.t);
   S.drawn = f;
   document.body.dataset.frame = String(f);
+  const sides = sidesOf(p);
   for (let vi = 0; vi < p.views.length; vi++) {
     const v = p.views[vi];
-    const cl = S.canvases.left[vi], cr = S.canvases.right[vi];
-    if (!cl || !cr) continue;
-    // one scale for both attempts: fit the smaller of the two canvases
+    const cs = sides.map((side) => S.canvases[side][vi]);
+    if (cs.some((c) => !c)) continue;
+    // one scale for every attempt: fit the smallest of their canvases
     const b = p.bounds[v.name];
     const pad = 8;
-    const w = Math.min(cl.w, cr.w) - 2 * pad, h = Math.min(cl.h, cr.h) - 2 * pad;
+    const w = Math.min(...cs.map((c) => c.w)) - 2 * pad, h = Math.min(...cs.map((c) => c.h)) - 2 * pad;
     const s = Math.max(1e-6, Math.min(w / (b.u1 - b.u0), h / (b.v1 - b.v0)));
-    drawAttempt(cl, v, p.att.left, p.read.left, Math.min(S.t, p.lastOf[0]), b, s);
-    drawAttempt(cr, v, p.att.right, p.read.right, Math.min(S.t, p.lastOf[1]), b, s);
-    leadIn(cl, p.att.left, f);
-    leadIn(cr, p.att.right, f);
+    sides.forEach((side, i) => {
+      drawAttempt(cs[i], v, p.att[side], p.read[side], Math.min(S.t, p.lastOf[i]), b, s);
+      leadIn(cs[i], p.att[side], f);
+    });
   }
-  for (const side of SIDES) {
-    const i = side === 'left' ? 0 : 1;
+  sides.forEach((side, i) => {
     for (const st of S.strips[side]) drawStrip(st, p, side, Math.min(S.t, p.lastOf[i]));
-  }
+  });
   const sc = $('scrub');
   if (String(f) !== sc.value) sc.value = String(f);
   $('frameinfo').textContent = (S.t / FPS).toFixed(1) + ' s / ' + (p.last / FPS).toFixed(1) + ' s' +

@@ -68,6 +68,10 @@ for (const id of ['btn-left', 'btn-right', 'btn-equal', 'btn-skip']) {
   $(id).addEventListener('click', (e) => { answer(e.currentTarget.dataset.choice); });
 }
 $('btn-undo').addEventListener('click', () => undo());
+$('btn-send').addEventListener('click', () => sendRanking());
+$('btn-back').addEventListener('click', () => takeBack());
+// A ranking's attempt is placed by clicking it too (the next place, best first).
+RANK_SIDES.forEach((side, i) => { $('att-' + side).addEventListener('click', () => pick(i)); });
 $('play').addEventListener('click', () => setPlaying(!S.playing));
 // clicking a button should not leave it focused (Space would press it again)
 for (const el of document.querySelectorAll('button, select, input[type=checkbox]')) {
@@ -99,6 +103,15 @@ window.addEventListener('keydown', (e) => {
   let act = null;
   if ((e.ctrlKey || e.metaKey) && !e.altKey && !e.shiftKey && (k === 'z' || k === 'Z')) {
     act = undo;
+  } else if (!e.ctrlKey && !e.metaKey && !e.altKey && S.cur && S.cur.kind === 'rank' && !WATCH) {
+    // A ranking: the attempts' numbers from best to worst.
+    if (k >= '1' && k <= '4') act = () => pick(Number(k) - 1);
+    else if (k === '=') act = tieNext;
+    else if (k === 'Backspace') act = takeBack;
+    else if (k === 'Enter') act = sendRanking;
+    else if (k === 's' || k === 'S') act = () => answer('skip');
+    else if (k === 'u' || k === 'U') act = undo;
+    else if (k === ' ' || k === 'Spacebar') act = () => setPlaying(!S.playing);
   } else if (!e.ctrlKey && !e.metaKey && !e.altKey) {
     if (k === 'ArrowLeft') act = WATCH ? () => watchStep(-1) : () => answer('left');
     else if (k === 'ArrowRight') act = WATCH ? () => watchStep(1) : () => answer('right');

@@ -13,6 +13,10 @@ const NAME_KEY = 'pbrl.labeller';
 const params = new URLSearchParams(location.search);
 const TOKEN = params.get('token') || '';
 const SIDES = ['left', 'right'];
+const RANK_SIDES = ['r0', 'r1', 'r2', 'r3'];   // a ranking's attempts, in the order shown
+const ORDINALS = ['1st', '2nd', '3rd', '4th'];
+// The sides of a prepared query (a pair's left and right, or a ranking's attempts).
+const sidesOf = (p) => (p && p.sides) || SIDES;
 const COLORS = {
   furnitureFill: '#e5e7eb', furnitureLine: '#9ca3af',
   personFill: '#f5dcc8', personLine: '#c08a63',
@@ -71,7 +75,7 @@ const S = {
   waitText: 'Loading…',
   blank: false,       // the canvases are cleared (no pair)
   viewSig: '',
-  canvases: { left: [], right: [] },   // per side: [{name, canvas, ctx, w, h}]
+  canvases: { left: [], right: [] },   // per side: [{name, canvas, ctx, w, h}] (r0.. for a ranking)
   strips: { left: [], right: [] },     // per side: [{q, canvas, ctx, wrap, w, h}]
 };
 window.pbrlLastAnswerMs = null;
@@ -99,7 +103,13 @@ function updateState() {
   document.body.dataset.query = S.cur ? String(S.cur.query) : '';
   document.body.dataset.busy = S.busy ? '1' : '';
   const canAnswer = !!S.cur && !S.cur.answered && !S.busy && !S.naming;
-  for (const id of ['btn-left', 'btn-right', 'btn-equal', 'btn-skip']) $(id).disabled = !canAnswer;
+  const ranking = !!S.cur && S.cur.kind === 'rank';
+  document.body.dataset.kind = ranking ? 'rank' : 'pair';
+  for (const id of ['btn-left', 'btn-right', 'btn-equal']) $(id).disabled = !canAnswer || ranking;
+  $('btn-skip').disabled = !canAnswer;
+  $('btn-send').disabled = !canAnswer || !ranking || !rankingDone(S.cur);
+  $('btn-back').disabled = !canAnswer || !ranking || S.cur.picks.length === 0;
+  renderPlaces();
   $('btn-undo').disabled = S.busy || !S.labeller || S.naming;
   $('play').disabled = !S.cur;
   $('scrub').disabled = !S.cur;
@@ -235,9 +245,15 @@ function renderCounts() {
 function prepare(p) {
   if (!p || typeof p !== 'object') throw new Error('not an object');
   if (p.query === undefined || p.query === null) throw new Error('no query id');
-  const att = { left: p.left, right: p.right };
+  const rank = p.kind === 'rank';
+  if (rank && (!Array.isArray(p.attempts) || p.attempts.length < 3 || p.attempts.length > RANK_SIDES.length)) {
+    throw new Error('a ranking needs 3 or 4 attempts');
+  }
+  const sides = rank ? RANK_SIDES.slice(0, p.attempts.length) : SIDES;
+  const att = {};
+  sides.forEach((side, i) => { att[side] = rank ? p.attempts[i] : p[side]; });
   const lastOf = [];
-  for (const side of SIDES) {
+  for (const side of sides) {
     const a = att[side];
     if (!a || !a.frames || !Array.isArray(a.frames.spoon)) throw new Error('attempt ' + side + ' has no frames');
     const f = a.frames;
@@ -249,7 +265,7 @@ function prepare(p) {
     if (!Array.isArray(a.views) || a.views.length === 0) throw new Error('attempt ' + side + ' has no views');
     lastOf.push(n - 1);
   }
-  const views = p.left.views.filter((v) => v && typeof v.name === 'string' && Array.isArray(v.axes) && v.axes.length === 2);
+  const views = att[sides[0]].views.filter((v) => v && typeof v.name === 'string' && Array.isArray(v.axes) && v.axes.length === 2);
   if (views.length === 0) throw new Error('no usable views');
   const bounds = {};
   for (const v of views) {
@@ -264,7 +280,7 @@ function prepare(p) {
       if (w + r > b.v1) b.v1 = w + r;
     };
     const addP = (q, r) => { if (Array.isArray(q)) add(q[ia], q[ib], r); };
-    for (const side of SIDES) {
+    for (const side of sides) {
       // Drawn large around what matters: the spoon's whole path, the head and mouth and
       // the arm's last links. Furniture and the arm's base are drawn but may run off the
       // canvas; food is left out: the world has no floor, so a spilled particle keeps
@@ -287,19 +303,22 @@ function prepare(p) {
     b.u0 -= mu; b.u1 += mu; b.v0 -= mv; b.v1 += mv;
     bounds[v.name] = b;
   }
-  const read = { left: readSide(att.left, 'left'), right: readSide(att.right, 'right') };
-  // one scale per strip for both attempts, so A and B compare by eye
+  const read = {};
+  for (const side of sides) read[side] = readSide(att[side], side);
+  // one scale per strip for every attempt, so they compare by eye
   const top = {};
   for (const st of STRIPS) {
     if (st.q === 'food') continue;
     let m = st.q === 'force' ? 1 : 1e-6;
-    for (const side of SIDES) if (read[side]) for (const x of read[side].series[st.q]) if (x > m) m = x;
+    for (const side of sides) if (read[side]) for (const x of read[side].series[st.q]) if (x > m) m = x;
     top[st.q] = m;
   }
   return {
     query: p.query, display: p.display, raw: p, att, views, bounds, lastOf, read, top,
-    last: Math.max(lastOf[0], lastOf[1]),
-    replays: [0, 0], answered: false, shownAt: 0,
+    kind: rank ? 'rank' : 'pair', sides,
+    last: Math.max(...lastOf),
+    replays: sides.map(() => 0), answered: false, shownAt: 0,
+    picks: [], tieNext: false,   // a ranking's places so far: [{i, place}], best first
   };
 }
 
@@ -437,8 +456,12 @@ function prefetch() {
 
 function showPair(p) {
   S.cur = p;
-  p.replays = [0, 0];
+  p.replays = p.sides.map(() => 0);
   p.answered = false;
+  p.picks = [];
+  p.tieNext = false;
+  for (const side of SIDES.concat(RANK_SIDES)) $('att-' + side).hidden = !p.sides.includes(side);
+  $('stage').style.setProperty('--n', String(p.sides.length));
   buildViews(p);
   showNumbers(p);
   S.t = 0; S.hold = 0; S.lastTs = null;
@@ -458,19 +481,86 @@ function showPair(p) {
   updateState();
 }
 
+// ---------- rankings ----------
+// A ranking is placed with keys: the attempts' numbers from best to worst (= ties the next
+// one with the one before, Backspace takes the last back); the last attempt is placed by
+// itself, and Enter sends.
+function rankingDone(p) { return !!p && p.kind === 'rank' && p.picks.length === p.sides.length; }
+
+function pick(i) {
+  const p = S.cur;
+  if (!p || p.kind !== 'rank' || p.answered || S.busy || i >= p.sides.length) return;
+  if (p.picks.some((x) => x.i === i)) return;
+  const last = p.picks[p.picks.length - 1];
+  const place = p.tieNext && last ? last.place : p.picks.length;
+  p.picks.push({ i, place });
+  p.tieNext = false;
+  if (p.picks.length === p.sides.length - 1) {
+    const rest = p.sides.findIndex((_, k) => !p.picks.some((x) => x.i === k));
+    p.picks.push({ i: rest, place: p.picks.length });
+  }
+  updateState();
+}
+
+function tieNext() {
+  const p = S.cur;
+  if (!p || p.kind !== 'rank' || p.picks.length === 0 || rankingDone(p)) return;
+  p.tieNext = true;
+  updateState();
+}
+
+function takeBack() {
+  const p = S.cur;
+  if (!p || p.kind !== 'rank' || p.answered || S.busy) return;
+  // NOTE: the last attempt was placed by itself: taking back goes past it too.
+  if (rankingDone(p)) p.picks.pop();
+  p.picks.pop();
+  p.tieNext = false;
+  updateState();
+}
+
+function renderPlaces() {
+  const p = S.cur;
+  const ranking = !!p && p.kind === 'rank';
+  RANK_SIDES.forEach((side, i) => {
+    const el = $('place-' + side);
+    const x = ranking ? p.picks.find((y) => y.i === i) : null;
+    el.textContent = x ? (p.picks.filter((y) => y.place === x.place).length > 1 ? 'tied ' : '') + ORDINALS[x.place] : '';
+    el.hidden = !x;
+  });
+  if (!ranking) return;
+  $('rank-hint').textContent = rankingDone(p)
+    ? 'Ranked: Enter sends it (Backspace takes the last back)'
+    : (p.tieNext ? 'The next one ties with the one before: press its number'
+      : 'Press the attempts\u2019 numbers from best to worst (= ties the next with the one before)');
+}
+
+async function sendRanking() {
+  const p = S.cur;
+  if (!rankingDone(p)) return;
+  const places = p.sides.map((_, i) => p.picks.find((x) => x.i === i).place);
+  await send({ places });
+}
+
 // ---------- answers ----------
 async function answer(choice) {
+  if (choice !== 'skip' && S.cur && S.cur.kind === 'rank') return;
+  await send({ choice });
+}
+
+// Send an answer (a pair's choice, or a ranking's places) to the pair on screen.
+async function send(verdict) {
   const t0 = performance.now();
   const cur = S.cur;
   if (!cur || cur.answered || S.busy || S.naming || !S.labeller) return;
   cur.answered = true;
   S.busy = true;
-  const body = {
-    labeller: S.labeller, query: cur.query, choice,
+  const body = Object.assign({
+    labeller: S.labeller, query: cur.query,
     took_ms: Math.max(0, Math.round(t0 - cur.shownAt)),
-    replays: cur.replays.slice(),
-  };
-  if (choice !== 'skip') S.took.push(body.took_ms);
+    replays: cur.kind === 'rank' ? [0, 0] : cur.replays.slice(),
+  }, verdict);
+  if (verdict.choice !== 'skip') S.took.push(body.took_ms);
   // Show the prefetched pair at once; the answer buttons stay off until the POST is through.
   S.answerAt = t0;
   if (S.pre) {
@@ -559,7 +649,7 @@ function advance(dt) {
   const prev = S.t;
   const next = prev + dt * FPS * S.speed;
   // A side counts as played through when the shared clock passes its last frame.
-  for (let i = 0; i < 2; i++) if (prev < p.lastOf[i] && next >= p.lastOf[i]) p.replays[i] += 1;
+  for (let i = 0; i < p.lastOf.length; i++) if (prev < p.lastOf[i] && next >= p.lastOf[i]) p.replays[i] += 1;
   if (next >= p.last) {
     S.t = p.last;
     if (S.loop) S.hold = END_HOLD_S;

@@ -73,8 +73,11 @@ pub struct Learner {
     /// The newest trajectory made new weights due; and those weights, once published.
     weights_due: bool,
     published: Option<Weights>,
-    /// Keeping time with the teacher: stopped since then, and for how long in all before.
+    /// Keeping time with the teacher: stopped since then.
     held_since: Option<Instant>,
+    /// Trajectories that came while it stood still (each taken once; at most the actors'
+    /// credit), trained on first once the answers are in.
+    stashed: std::collections::VecDeque<TrajectoryMsg>,
     summary: Summary,
 }
 
@@ -135,6 +138,7 @@ impl Learner {
             weights_due: false,
             published: None,
             held_since: None,
+            stashed: std::collections::VecDeque::new(),
             summary: Summary::default(),
         })
     }
@@ -194,9 +198,9 @@ impl Learner {
 
     /// Store the trajectory's transitions (and keep it for queries; while pretraining, its
     /// states join the entropy bonus's pool), then take the gradient steps it pays for.
-    pub fn train(&mut self, msg: TrajectoryMsg) -> Result<()> {
+    pub fn train(&mut self, msg: TrajectoryMsg, kept_for_queries: bool) -> Result<()> {
         self.published = None;
-        if let Some(f) = self.feedback.as_mut() {
+        if let Some(f) = self.feedback.as_mut().filter(|_| !kept_for_queries) {
             f.observe(&msg);
         }
         self.reward.observe(&msg.trajectory);
@@ -229,10 +233,10 @@ impl Learner {
         Ok(())
     }
 
-    /// Keep time with the teacher: whether the learner stands still now (it takes no
-    /// trajectory, so it trains on none and publishes no weights, and the actors idle once
-    /// their credit is spent) until the answers it waits for are in and trained on. The
-    /// deterministic mode waits in its own way.
+    /// Keep time with the teacher: whether the learner stands still now (it trains on no
+    /// trajectory, keeping those that come, and publishes no weights, so the actors idle
+    /// once their credit is spent) until the answers it waits for are in and trained on.
+    /// The deterministic mode waits in its own way.
     pub fn holding(&mut self) -> bool {
         let held = !self.cfg.sync
             && self
@@ -268,6 +272,22 @@ impl Learner {
             _ => {}
         }
         held
+    }
+
+    /// Keep a trajectory that came while the learner stands still, for when it goes on
+    /// (taking it from the bus keeps a sender's copies sent again from piling up there).
+    pub fn stash(&mut self, m: TrajectoryMsg) {
+        // NOTE: kept for queries now, so that a session's queries still owed can be asked
+        // of what the robot did last (not again when it is trained on).
+        if let Some(f) = self.feedback.as_mut() {
+            f.observe(&m);
+        }
+        self.stashed.push_back(m);
+    }
+
+    /// The oldest trajectory kept while the learner stood still (already kept for queries).
+    pub fn unstash(&mut self) -> Option<TrajectoryMsg> {
+        self.stashed.pop_front()
     }
 
     /// New weights, when the backbone said so.

@@ -6,6 +6,7 @@ use std::future::Future;
 use std::time::Duration;
 
 use anyhow::Result;
+use pbrl_common::wire::TrajectoryMsg;
 use pbrl_common::Keys;
 use zenoh::Session;
 
@@ -34,18 +35,25 @@ pub async fn run(
         if l.done() {
             break false;
         }
-        // Keeping time with the teacher: no trajectory is taken until the answers are in.
+        // Keeping time with the teacher: no trajectory is trained on until the answers are
+        // in; those that came meanwhile are trained on first once they are.
         let holding = l.holding();
+        if !holding {
+            if let Some(m) = l.unstash() {
+                step(&mut l, m, true, &mut bus).await?;
+                continue;
+            }
+        }
         tokio::select! {
             _ = &mut shutdown => break true,
-            // A trajectory acted by the newest policy.
-            m = bus.trajectories.next(), if !holding => {
+            // A trajectory acted by the newest policy (taken once: one sent again is not).
+            m = bus.trajectories.next() => {
                 if let Some(m) = l.take(m?) {
-                    l.train(m)?;                    // store its transitions; gradient steps
-                    l.publish_weights(&bus).await?; // new weights, when due
-                    l.feedback(&mut bus).await?;    // every K env steps: choose queries
-                    l.curve_row(&bus).await?;       // a row of the curve, when due
-                    l.checkpoint_if_due()?;         // at a publication, when due
+                    if holding {
+                        l.stash(m);
+                    } else {
+                        step(&mut l, m, false, &mut bus).await?;
+                    }
                 }
             }
             // Queries chosen: asked; or r_hat trained on D: it is the reward from now on.
@@ -58,4 +66,19 @@ pub async fn run(
         }
     };
     l.finish(&mut bus, stopped, shutdown).await
+}
+
+/// One trajectory through Algorithm 1's steps (`kept_for_queries`: the annotation buffer
+/// has it already, from while the learner stood still).
+async fn step(
+    l: &mut Learner,
+    m: TrajectoryMsg,
+    kept_for_queries: bool,
+    bus: &mut LearnerBus,
+) -> Result<()> {
+    l.train(m, kept_for_queries)?; // store its transitions; gradient steps
+    l.publish_weights(bus).await?; // new weights, when due
+    l.feedback(bus).await?; // every K env steps: choose queries
+    l.curve_row(bus).await?; // a row of the curve, when due
+    l.checkpoint_if_due() // at a publication, when due
 }
