@@ -228,6 +228,22 @@ impl RewardModel {
         Ok((acc.into_store(net)?, loss, right, hard))
     }
 
+    /// Fit the normaliser to D's observations, every distinct trajectory once (unless it
+    /// came with a prior and is kept).
+    fn refit_normaliser(&mut self, data: &[Labelled]) {
+        if self.keep_norm {
+            return;
+        }
+        let mut seen = HashSet::new();
+        let segs: Vec<&Segment> = data
+            .iter()
+            .flat_map(|l| [&l.first, &l.second])
+            .filter(|s| seen.insert(Arc::as_ptr(s)))
+            .map(|s| &**s)
+            .collect();
+        self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
+    }
+
     /// One training session on D (the whole preference dataset so far).
     ///
     /// The normaliser is refitted to D's observations first and then frozen until the
@@ -266,17 +282,7 @@ impl RewardModel {
                 accuracy: 1.0,
             });
         }
-        // Every distinct trajectory once, in D's order (the crops below lie within them).
-        let mut seen = HashSet::new();
-        let segs: Vec<&Segment> = data
-            .iter()
-            .flat_map(|l| [&l.first, &l.second])
-            .filter(|s| seen.insert(Arc::as_ptr(s)))
-            .map(|s| &**s)
-            .collect();
-        if !self.keep_norm {
-            self.norm = ObsNorm::fit(segs.iter().copied(), self.obs_dim);
-        }
+        self.refit_normaliser(data);
         let crops = if self.cfg.crops > 0 {
             self.draw_crops(data)?
         } else {
