@@ -11,7 +11,6 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::Mutex;
 use std::time::Duration;
 
 use pbrl_common::connect::free_local_port;
@@ -19,18 +18,13 @@ use serde_json::{json, Value};
 
 mod support;
 
-use support::page::{human_train, train_args, LAYOUT_PROBLEMS, READ_PAGE};
+use support::page::{
+    human_train, one_at_a_time, train_args, ARROW_LEFT, ARROW_RIGHT, LAYOUT_PROBLEMS, READ_PAGE,
+};
 use support::poll::poll;
 use support::proc::{pbrl, Launch, LOG};
 use support::store::{human_answers, ids, sql, wait_for_answers};
 use support::web::{base64, browser_wanted, enc, http, parse_reply, Api, Browser};
-
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    // NOTE: a failed test poisons the lock; the next one may still run.
-    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 #[test]
 fn base64_decodes_known_values() {
@@ -69,8 +63,6 @@ fn replies_are_read_to_their_end() {
 }
 
 // ---------- the tests ----------
-
-const ARROW_RIGHT: &str = "\u{E014}";
 
 #[test]
 #[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]
@@ -257,8 +249,6 @@ fn python_client_answers_a_running_learner() {
         }
     }
 }
-
-const ARROW_LEFT: &str = "\u{E012}";
 
 /// The paper profile's ground truth as a person reading the page can weigh it: food eaten
 /// (20 + 0.5 per particle), spilled (-5) and on the person (-2.5), then the distance to the

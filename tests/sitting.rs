@@ -5,28 +5,15 @@
 //! has the page's pairs; both need a browser, `support::web`.)
 
 use std::path::Path;
-use std::sync::Mutex;
 
 use serde_json::json;
 
 mod support;
 
-use support::page::human_train;
+use support::page::{human_train, one_at_a_time, ARROW_RIGHT, BACKSPACE, ENTER};
 use support::poll::poll;
 use support::store::{sql, wait_for_answers};
 use support::web::{browser_wanted, Api, Browser};
-
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-/// Two feeding runs beside a browser on 2 cores starve one another: one at a time.
-fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    // NOTE: a failed test poisons the lock; the next one may still run.
-    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-const ARROW_RIGHT: &str = "\u{E014}";
-const BACKSPACE: &str = "\u{E003}";
-const ENTER: &str = "\u{E007}";
 
 #[test]
 #[cfg_attr(skip_browser, ignore = "PBRL_SKIP_BROWSER=1: needs a browser")]

@@ -182,8 +182,7 @@ impl<J: Judge> Paced<J> {
         }
         while let Some(head) = self.queue.front() {
             let q = &head.query;
-            let gone = (q.expires_at_ms != 0 && q.expires_at_ms <= now_ms())
-                || q.stale_at(self.learner_steps);
+            let gone = q.expired_at(now_ms()) || q.stale_at(self.learner_steps);
             if gone {
                 tracing::debug!(query = q.id, "a withdrawn query passed over");
                 let id = q.id;

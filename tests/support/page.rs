@@ -3,6 +3,7 @@
 //! pressed, and what a person reads on it (`tests/labelling.rs`).
 
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use pbrl_common::connect::free_local_port;
 use serde_json::json;
@@ -148,6 +149,21 @@ impl Browser {
         q.parse()
             .unwrap_or_else(|e| panic!("the page's query {q:?}: {e}"))
     }
+}
+
+/// WebDriver's codes of the keys the page answers to.
+pub const ARROW_LEFT: &str = "\u{E012}";
+pub const ARROW_RIGHT: &str = "\u{E014}";
+pub const BACKSPACE: &str = "\u{E003}";
+pub const ENTER: &str = "\u{E007}";
+
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+/// The page's tests run one at a time: two feeding runs beside a browser on 2 cores starve
+/// one another.
+pub fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    // NOTE: a failed test poisons the lock; the next one may still run.
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// What a person reads on the page for the pair on screen: the strips' numbers of each

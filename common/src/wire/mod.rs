@@ -231,6 +231,11 @@ impl Query {
         false
     }
 
+    /// Expired at `now_ms` (Unix milliseconds): the learner no longer waits for it.
+    pub fn expired_at(&self, now_ms: u64) -> bool {
+        self.expires_at_ms != 0 && self.expires_at_ms <= now_ms
+    }
+
     /// Withdrawn as stale at `env_steps` of the learner.
     pub fn stale_at(&self, env_steps: u64) -> bool {
         self.withdraw_at_steps != 0 && env_steps >= self.withdraw_at_steps
@@ -670,9 +675,9 @@ pub mod v8 {
     }
 
     impl Query {
-        /// This build's query: never withdrawn.
+        /// This build's query: never withdrawn (a pair).
         pub fn upgrade(self) -> super::Query {
-            super::Query {
+            super::v9::Query {
                 id: self.id,
                 session: self.session,
                 asked_at_ms: self.asked_at_ms,
@@ -681,8 +686,8 @@ pub mod v8 {
                 second: self.second,
                 r_avg: self.r_avg,
                 withdraw_at_steps: 0,
-                more: Vec::new(),
             }
+            .upgrade()
         }
     }
 }
@@ -732,7 +737,7 @@ mod v6 {
 
     impl Query {
         pub fn upgrade(self) -> super::Query {
-            super::Query {
+            super::v8::Query {
                 id: self.id,
                 session: self.session,
                 asked_at_ms: self.asked_at_ms,
@@ -740,9 +745,8 @@ mod v6 {
                 first: self.first.upgrade(),
                 second: self.second.upgrade(),
                 r_avg: None,
-                withdraw_at_steps: 0,
-                more: Vec::new(),
             }
+            .upgrade()
         }
     }
 }

@@ -287,8 +287,7 @@ impl Desk {
         if self.answered.contains(&q.id) || self.queries.contains_key(&q.id) {
             return Ok(());
         }
-        if (q.expires_at_ms != 0 && q.expires_at_ms <= now_ms()) || q.stale_at(self.learner_steps())
-        {
+        if q.expired_at(now_ms()) || q.stale_at(self.learner_steps()) {
             return Ok(());
         }
         self.store.queue(&q)?;
@@ -350,8 +349,7 @@ impl Desk {
                     .get(&q.id)
                     .is_some_and(|(_, at)| now < at + lease_ms);
                 !self.answered.contains(&q.id)
-                    && ((q.expires_at_ms != 0 && q.expires_at_ms <= now)
-                        || (q.stale_at(steps) && !held))
+                    && (q.expired_at(now) || (q.stale_at(steps) && !held))
             })
             .map(|q| q.id)
             .collect();
